@@ -1,0 +1,175 @@
+// Bicubic spline interpolation of polar field maps (tensor-product spline as Hermite patches).
+#include "turnfit/field/field_map.hpp"
+
+#include <Eigen/Dense>
+#include <cmath>
+
+#include "turnfit/io/error.hpp"
+
+namespace turnfit {
+namespace {
+constexpr double kPi = 3.14159265358979323846;
+
+/// Node slopes of the not-a-knot cubic spline through equally spaced samples; the
+/// columns of y are independent data sets (h = 1; divide by the real spacing).
+Eigen::MatrixXd notaknot_slopes(const Eigen::MatrixXd& y) {
+  const int n = static_cast<int>(y.rows());
+  Eigen::MatrixXd slopes(n, y.cols());
+  if (n == 2) {  // a straight line
+    for (int c = 0; c < y.cols(); ++c) slopes.col(c).setConstant(y(1, c) - y(0, c));
+    return slopes;
+  }
+  if (n == 3) {  // not-a-knot with 3 points: the interpolating parabola
+    for (int c = 0; c < y.cols(); ++c) {
+      slopes(0, c) = (-3 * y(0, c) + 4 * y(1, c) - y(2, c)) / 2;
+      slopes(1, c) = (y(2, c) - y(0, c)) / 2;
+      slopes(2, c) = (y(0, c) - 4 * y(1, c) + 3 * y(2, c)) / 2;
+    }
+    return slopes;
+  }
+  // Interior rows: C2 continuity, m[i-1] + 4 m[i] + m[i+1] = 3 (y[i+1] - y[i-1]).
+  // End rows: continuous third derivative at the second and second-to-last nodes,
+  // which for Hermite cubics gives m0 - m2 = 4 y1 - 2 y0 - 2 y2 (and its mirror).
+  Eigen::MatrixXd A = Eigen::MatrixXd::Zero(n, n);
+  Eigen::MatrixXd b(n, y.cols());
+  A(0, 0) = 1;
+  A(0, 2) = -1;
+  b.row(0) = 4 * y.row(1) - 2 * y.row(0) - 2 * y.row(2);
+  for (int i = 1; i < n - 1; ++i) {
+    A(i, i - 1) = 1;
+    A(i, i) = 4;
+    A(i, i + 1) = 1;
+    b.row(i) = 3 * (y.row(i + 1) - y.row(i - 1));
+  }
+  A(n - 1, n - 3) = 1;
+  A(n - 1, n - 1) = -1;
+  b.row(n - 1) = 4 * y.row(n - 2) - 2 * y.row(n - 3) - 2 * y.row(n - 1);
+  return A.partialPivLu().solve(b);
+}
+
+/// Node slopes of the periodic cubic spline (h = 1) through y (rows: nodes).
+Eigen::MatrixXd periodic_slopes(const Eigen::MatrixXd& y) {
+  const int n = static_cast<int>(y.rows());
+  Eigen::MatrixXd A = Eigen::MatrixXd::Zero(n, n);
+  Eigen::MatrixXd b(n, y.cols());
+  if (n < 3) return Eigen::MatrixXd::Zero(n, y.cols());  // constant in theta
+  for (int i = 0; i < n; ++i) {
+    A(i, (i + n - 1) % n) += 1;
+    A(i, i) += 4;
+    A(i, (i + 1) % n) += 1;
+    b.row(i) = 3 * (y.row((i + 1) % n) - y.row((i + n - 1) % n));
+  }
+  return A.partialPivLu().solve(b);
+}
+}  // namespace
+
+double PolarGrid::dtheta_rad() const { return 2 * kPi / (static_cast<double>(symmetry) * ntheta); }
+double PolarGrid::theta_min_rad() const { return theta_min_deg * kPi / 180.0; }
+
+PolarFieldMap::PolarFieldMap(const PolarGrid& grid, std::vector<double> bz_T, std::string label)
+    : grid_(grid), bz_(std::move(bz_T)), label_(std::move(label)) {
+  if (grid_.nr < 2 || grid_.ntheta < 1 || grid_.symmetry < 1 || !(grid_.dr_mm > 0) ||
+      !(grid_.r_min_mm >= 0) || !std::isfinite(grid_.theta_min_deg))
+    throw Error(ExitCode::data, "field map: invalid grid (need nr >= 2, ntheta >= 1, dr > 0, "
+                                "r_min >= 0, symmetry >= 1)");
+  if (bz_.size() != static_cast<size_t>(grid_.nr) * grid_.ntheta)
+    throw Error(ExitCode::data, "field map: " + std::to_string(bz_.size()) + " values for a " +
+                                    std::to_string(grid_.nr) + " x " + std::to_string(grid_.ntheta) +
+                                    " grid");
+  for (size_t k = 0; k < bz_.size(); ++k)
+    if (!std::isfinite(bz_[k]))
+      throw Error(ExitCode::data, "field map: value " + std::to_string(k) + " is not finite");
+  build();
+}
+
+void PolarFieldMap::build() {
+  const int nr = grid_.nr, nt = grid_.ntheta;
+  r_min_ = grid_.r_min_m();
+  r_max_ = grid_.r_max_m();
+  theta_min_ = grid_.theta_min_rad();
+  inv_dr_ = 1.0 / grid_.dr_m();
+  inv_dth_ = 1.0 / grid_.dtheta_rad();
+  Eigen::MatrixXd F(nr, nt);
+  for (int i = 0; i < nr; ++i)
+    for (int j = 0; j < nt; ++j) F(i, j) = value(i, j);
+  // Slopes in grid units (per cell), so the patches live on the unit square.
+  Eigen::MatrixXd Fu = notaknot_slopes(F);                          // d/du, columns = azimuths
+  Eigen::MatrixXd Fv = periodic_slopes(F.transpose()).transpose();   // d/dv
+  Eigen::MatrixXd Fuv = periodic_slopes(Fu.transpose()).transpose(); // d2/dudv
+
+  // Hermite basis: p(t) = [1 t t^2 t^3] H [p0 p1 p0' p1']^T.
+  Eigen::Matrix4d H;
+  H << 1, 0, 0, 0, 0, 0, 1, 0, -3, 3, -2, -1, 2, -2, 1, 1;
+  coef_.resize(static_cast<size_t>(nr - 1) * nt);
+  for (int i = 0; i < nr - 1; ++i) {
+    for (int j = 0; j < nt; ++j) {
+      const int j1 = (j + 1) % nt;
+      Eigen::Matrix4d G;
+      G << F(i, j), F(i, j1), Fv(i, j), Fv(i, j1),          //
+          F(i + 1, j), F(i + 1, j1), Fv(i + 1, j), Fv(i + 1, j1),  //
+          Fu(i, j), Fu(i, j1), Fuv(i, j), Fuv(i, j1),        //
+          Fu(i + 1, j), Fu(i + 1, j1), Fuv(i + 1, j), Fuv(i + 1, j1);
+      Eigen::Matrix4d A = H * G * H.transpose();
+      auto& c = coef_[static_cast<size_t>(i) * nt + j];
+      for (int k = 0; k < 4; ++k)
+        for (int l = 0; l < 4; ++l) c[k * 4 + l] = A(k, l);
+    }
+  }
+}
+
+bool PolarFieldMap::sample(double r_m, double theta_rad, FieldSample& out) const {
+  if (!(r_m >= r_min_ && r_m <= r_max_)) return false;
+  double x = (r_m - r_min_) * inv_dr_;
+  int i = static_cast<int>(x);
+  if (i >= grid_.nr - 1) i = grid_.nr - 2;
+  const double u = x - i;
+  double y = (theta_rad - theta_min_) * inv_dth_;
+  const double nt = grid_.ntheta;
+  y = std::fmod(y, nt);
+  if (y < 0) y += nt;
+  int j = static_cast<int>(y);
+  if (j >= grid_.ntheta) j = grid_.ntheta - 1;  // y rounded up to nt
+  const double v = y - j;
+  const auto& a = coef_[static_cast<size_t>(i) * grid_.ntheta + j];
+  // Horner in v for each power of u, with the v-derivative alongside.
+  double row[4], drow[4];
+  for (int k = 0; k < 4; ++k) {
+    const double* c = &a[k * 4];
+    row[k] = ((c[3] * v + c[2]) * v + c[1]) * v + c[0];
+    drow[k] = (3 * c[3] * v + 2 * c[2]) * v + c[1];
+  }
+  out.bz_T = ((row[3] * u + row[2]) * u + row[1]) * u + row[0];
+  out.dbz_dr_T_m = ((3 * row[3] * u + 2 * row[2]) * u + row[1]) * inv_dr_;
+  out.dbz_dth_T = (((drow[3] * u + drow[2]) * u + drow[1]) * u + drow[0]) * inv_dth_;
+  return true;
+}
+
+double PolarFieldMap::bz(double r_m, double theta_rad) const {
+  FieldSample s;
+  return sample(r_m, theta_rad, s) ? s.bz_T : std::nan("");
+}
+
+double PolarFieldMap::average(int i) const {
+  double s = 0;
+  for (int j = 0; j < grid_.ntheta; ++j) s += value(i, j);
+  return s / grid_.ntheta;
+}
+
+double PolarFieldMap::average_at(double r_m) const {
+  double s = 0;
+  for (int j = 0; j < grid_.ntheta; ++j) s += bz(r_m, theta_min_ + j * grid_.dtheta_rad());
+  return s / grid_.ntheta;
+}
+
+PolarFieldMap make_field_map(const PolarGrid& grid, const std::function<double(double, double)>& f,
+                             const std::string& label) {
+  std::vector<double> v(static_cast<size_t>(grid.nr) * grid.ntheta);
+  const double dth = grid.dtheta_rad();
+  for (int i = 0; i < grid.nr; ++i)
+    for (int j = 0; j < grid.ntheta; ++j)
+      v[static_cast<size_t>(i) * grid.ntheta + j] =
+          f(grid.r_min_m() + i * grid.dr_m(), grid.theta_min_rad() + j * dth);
+  return PolarFieldMap(grid, std::move(v), label);
+}
+
+}  // namespace turnfit

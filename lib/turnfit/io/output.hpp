@@ -1,0 +1,40 @@
+// Atomic outputs: results go to a temporary file that is renamed into place on success.
+#pragma once
+
+#include <fstream>
+#include <memory>
+#include <ostream>
+#include <string>
+
+namespace turnfit {
+
+/// An output that is either stdout ("-" or empty path) or a file written atomically:
+/// data goes to a temporary file in the same folder, renamed to the final path by
+/// commit(). Destroyed without commit(), it removes the temporary, so an interrupted
+/// or failed run never leaves a half-written result.
+class OutputFile {
+ public:
+  /// Opens the output (EX_CANTCREAT if the temporary cannot be created).
+  explicit OutputFile(const std::string& path);
+  ~OutputFile();
+  OutputFile(const OutputFile&) = delete;
+  OutputFile& operator=(const OutputFile&) = delete;
+
+  /// The stream to write to.
+  std::ostream& stream();
+  /// Flushes, checks for write errors (EX_IOERR) and renames into place.
+  void commit();
+  /// The final path ("-" for stdout).
+  const std::string& path() const { return path_; }
+
+ private:
+  std::string path_;
+  std::string tmp_;
+  std::unique_ptr<std::ofstream> file_;
+  bool committed_ = false;
+};
+
+/// Writes a whole string to path atomically (or to stdout for "-").
+void write_output(const std::string& path, const std::string& content);
+
+}  // namespace turnfit

@@ -1,0 +1,44 @@
+// Reading whole inputs (files or stdin) and strict number parsing with file:line errors.
+#pragma once
+
+#include <string>
+#include <string_view>
+#include <vector>
+
+namespace turnfit {
+
+/// The text of one input, with the name used in messages ("<stdin>" for "-").
+struct InputText {
+  std::string name;  ///< path as the user gave it, or "<stdin>"
+  std::string text;  ///< whole content
+};
+
+/// Reads a file, or stdin when path is "-" (EX_NOINPUT if it cannot be opened,
+/// EX_IOERR if reading fails).
+InputText read_input(const std::string& path);
+
+/// Splits text into lines (without "\n" or a trailing "\r").
+std::vector<std::string_view> split_lines(std::string_view text);
+
+/// Removes leading and trailing blanks (spaces, tabs, CR).
+std::string_view trim(std::string_view s);
+
+/// Parses a finite double occupying the whole token; otherwise EX_DATAERR
+/// "file:line: <what>: 'token' is not a number" (NaN and Inf are rejected too).
+double parse_double(std::string_view token, const std::string& file, long line,
+                    const std::string& what);
+
+/// Parses a whole-token integer, with the same error shape as parse_double.
+long parse_long(std::string_view token, const std::string& file, long line,
+                const std::string& what);
+
+/// Splits on a single-character separator, trimming each field.
+std::vector<std::string_view> split_fields(std::string_view line, char sep);
+
+/// Splits on runs of blanks.
+std::vector<std::string_view> split_blanks(std::string_view line);
+
+/// Formats a double so that reading it back gives the same value (%.17g).
+std::string format_exact(double v);
+
+}  // namespace turnfit

@@ -1,0 +1,171 @@
+// turnfit-orbit: equilibrium orbit tables from a field map or a machine file.
+#include "turnfit/orbit/orbit_app.hpp"
+
+#include <cmath>
+#include <iostream>
+
+#include "turnfit/field/load.hpp"
+#include "turnfit/field/map_io.hpp"
+#include "turnfit/io/error.hpp"
+#include "turnfit/io/output.hpp"
+#include "turnfit/machine/machine.hpp"
+
+namespace turnfit {
+namespace {
+
+std::string cell(double v, int digits) { return std::isfinite(v) ? cli::fmt(v, digits) : std::string(); }
+
+Particle particle_named(const std::string& name) {
+  Particle p;
+  p.species = name;
+  if (name == "proton") return p;
+  if (name == "deuteron") {
+    p.mass_MeV = 1875.61294257;
+    return p;
+  }
+  if (name == "alpha") {
+    p.mass_MeV = 3727.3794066;
+    p.charge_e = 2;
+    return p;
+  }
+  throw usage_error("--particle '" + name + "': expected proton, deuteron or alpha (or a machine file)");
+}
+
+void progress_bar(size_t done, size_t total) {
+  if (done == total || done % 16 == 0)
+    std::fprintf(stderr, "\rturnfit-orbit: %zu/%zu energies%s", done, total, done == total ? "\n" : "");
+}
+
+}  // namespace
+
+void add_orbit_options(CLI::App& app, OrbitOptions& o) {
+  app.description(
+      "Static equilibrium orbits (closed orbits without RF) of a cyclotron field map: radius and\n"
+      "radial momentum at an azimuth, tunes from the one-sector transfer matrices, revolution\n"
+      "frequency and RF phase slip per turn. One CSV row per energy.");
+  app.add_option("machine", o.machine, "Machine file (field, particle and RF taken from it)");
+  app.add_option("--field-map", o.field_map, "Field map file ('-' for stdin); overrides the machine's");
+  app.add_option("--field-format", o.field_format, "Field map format")
+      ->check(CLI::IsMember({"psi-ring", "turnfit"}))
+      ->capture_default_str();
+  app.add_option("--symmetry", o.symmetry, "Number of sectors (0: from the map)")->check(CLI::NonNegativeNumber);
+  app.add_option("--field-scale", o.field_scale, "Multiply the map by this factor (-1 flips polarity)")
+      ->capture_default_str();
+  app.add_option("--particle", o.particle, "proton, deuteron or alpha (without a machine file)")
+      ->capture_default_str();
+  app.add_option("--energies", o.energies, "Kinetic energies [MeV]: FIRST:LAST:STEP or E1,E2,...")->required();
+  app.add_option("--harmonic", o.harmonic, "RF harmonic number h (for the phase slip)")->check(CLI::PositiveNumber);
+  app.add_option("--rf-MHz", o.rf_MHz, "RF frequency [MHz] (for the phase slip)")->check(CLI::PositiveNumber);
+  app.add_option("--azimuth-deg", o.azimuth_deg, "Azimuth where r and pr are reported [deg]")->capture_default_str();
+  app.add_option("--steps-per-cell", o.steps_per_cell, "RK4 steps per azimuthal map cell")
+      ->check(CLI::Range(1, 1000))
+      ->capture_default_str();
+  app.add_option("--set", o.sets, "Set a design variable or JSON pointer of the machine: NAME=VALUE");
+  app.add_option("--dvars", o.dvars, "JSON file of design-variable values");
+  app.add_flag("--strict", o.strict, "Exit 65 if any energy has no closed orbit or unstable motion");
+  cli::add_common_options(app, o.common, cli::kOutput | cli::kFormat | cli::kThreads, {"csv", "json", "text"});
+}
+
+void write_orbit_csv(std::ostream& os, const std::vector<OrbitRow>& rows) {
+  os << "energy_MeV,r_mm,pr_mrad,nu_r,nu_z,f_rev_MHz,phase_slip_deg_per_turn,r_avg_mm,status\n";
+  for (const auto& r : rows) {
+    std::string status = r.status;
+    for (auto& c : status)
+      if (c == ',') c = ';';
+    os << cli::fmt(r.energy_MeV, 10) << ',' << cell(r.r_mm, 10) << ',' << cell(r.pr_mrad, 8) << ','
+       << cell(r.nu_r, 8) << ',' << cell(r.nu_z, 8) << ',' << cell(r.f_rev_MHz, 10) << ','
+       << cell(r.phase_slip_deg, 6) << ',' << cell(r.r_avg_mm, 10) << ',' << status << '\n';
+  }
+}
+
+namespace {
+void write_orbit_json(std::ostream& os, const std::vector<OrbitRow>& rows, bool provenance) {
+  nlohmann::json doc;
+  if (provenance) doc["provenance"] = cli::provenance();
+  nlohmann::json arr = nlohmann::json::array();
+  auto num = [](double v) { return std::isfinite(v) ? nlohmann::json(v) : nlohmann::json(nullptr); };
+  for (const auto& r : rows)
+    arr.push_back({{"energy_MeV", r.energy_MeV}, {"r_mm", num(r.r_mm)}, {"pr_mrad", num(r.pr_mrad)},
+                   {"nu_r", num(r.nu_r)}, {"nu_z", num(r.nu_z)}, {"f_rev_MHz", num(r.f_rev_MHz)},
+                   {"phase_slip_deg_per_turn", num(r.phase_slip_deg)}, {"r_avg_mm", num(r.r_avg_mm)},
+                   {"status", r.status}});
+  doc["orbits"] = arr;
+  os << doc.dump(1) << "\n";
+}
+
+void write_orbit_text(std::ostream& os, const std::vector<OrbitRow>& rows) {
+  char buf[256];
+  os << "  E [MeV]     r [mm]  pr [mrad]     nu_r     nu_z  f_rev [MHz]  slip [deg/turn]  status\n";
+  for (const auto& r : rows) {
+    std::snprintf(buf, sizeof buf, "%9.3f %10.3f %10.4f %8.5f %8.5f %12.6f %16s  %s\n", r.energy_MeV, r.r_mm,
+                  r.pr_mrad, r.nu_r, r.nu_z, r.f_rev_MHz,
+                  std::isfinite(r.phase_slip_deg) ? cli::fmt(r.phase_slip_deg, 5).c_str() : "-", r.status.c_str());
+    os << buf;
+  }
+}
+}  // namespace
+
+int run_orbit(const OrbitOptions& o) {
+  if (o.machine.empty() && o.field_map.empty())
+    throw usage_error("give a machine file or --field-map FILE");
+  if ((!o.sets.empty() || !o.dvars.empty()) && o.machine.empty())
+    throw usage_error("--set and --dvars need a machine file");
+  if (o.machine == "-" && o.field_map == "-") throw usage_error("only one input can be stdin");
+  if (!(o.field_scale != 0) || !std::isfinite(o.field_scale)) throw usage_error("--field-scale must be non-zero");
+  const std::vector<double> energies = parse_energies(o.energies);
+
+  OrbitSettings s;
+  s.azimuth_deg = o.azimuth_deg;
+  s.steps_per_cell = o.steps_per_cell;
+  PolarFieldMap map;
+  if (!o.machine.empty()) {
+    Machine m = load_machine(o.machine);
+    apply_sets(m, o.sets);
+    if (!o.dvars.empty()) apply_dvars_file(m, o.dvars);
+    s.mass_MeV = m.particle.mass_MeV;
+    s.charge_e = m.particle.charge_e;
+    s.harmonic = m.rf.harmonic;
+    s.rf_MHz = m.rf.frequency_MHz;
+    if (o.field_map.empty()) {
+      map = load_main_field(m);
+      if (o.field_scale != 1.0) map = scaled(map, o.field_scale);
+    }
+  } else {
+    Particle p = particle_named(o.particle);
+    s.mass_MeV = p.mass_MeV;
+    s.charge_e = p.charge_e;
+  }
+  if (!o.field_map.empty())
+    map = scaled(read_field_map(o.field_map, parse_map_format(o.field_format), o.symmetry), o.field_scale);
+  if (o.harmonic > 0) s.harmonic = o.harmonic;
+  if (o.rf_MHz > 0) s.rf_MHz = o.rf_MHz;
+  if ((o.harmonic > 0) != (o.rf_MHz > 0) && !(s.harmonic > 0 && s.rf_MHz > 0))
+    throw usage_error("--harmonic and --rf-MHz go together (or come from the machine file)");
+
+  const bool show_progress = !o.common.quiet && cli::stderr_is_tty() && energies.size() > 64;
+  std::vector<OrbitRow> rows =
+      orbit_table(map, s, energies, cli::resolve_threads(o.common.threads), show_progress ? progress_bar : nullptr);
+
+  OutputFile out(o.common.output);
+  if (o.common.format == "json") {
+    write_orbit_json(out.stream(), rows, !o.common.no_provenance);
+  } else if (o.common.format == "text") {
+    write_orbit_text(out.stream(), rows);
+  } else {
+    if (!o.common.no_provenance) out.stream() << cli::provenance_comment();
+    write_orbit_csv(out.stream(), rows);
+  }
+  out.commit();
+
+  size_t bad = 0;
+  for (const auto& r : rows)
+    if (!r.ok()) {
+      if (bad < 5) cli::warn(o.common, cli::fmt(r.energy_MeV) + " MeV: " + r.status);
+      ++bad;
+    }
+  if (bad > 5) cli::warn(o.common, std::to_string(bad - 5) + " more energies without a stable closed orbit");
+  if (bad > 0 && o.strict) return static_cast<int>(ExitCode::data);
+  return 0;
+}
+
+}  // namespace turnfit

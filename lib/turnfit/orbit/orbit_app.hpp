@@ -1,0 +1,42 @@
+// turnfit-orbit as a library function: options struct, run, table output.
+#pragma once
+
+#include <CLI/CLI.hpp>
+#include <ostream>
+#include <string>
+#include <vector>
+
+#include "turnfit/cli/common.hpp"
+#include "turnfit/orbit/closed_orbit.hpp"
+
+namespace turnfit {
+
+/// Everything turnfit-orbit is asked to do.
+struct OrbitOptions {
+  cli::CommonOptions common;
+  std::string machine;                 ///< machine file (optional)
+  std::vector<std::string> sets;       ///< --set NAME=VALUE
+  std::string dvars;                   ///< --dvars FILE
+  std::string field_map;               ///< --field-map (overrides the machine's)
+  std::string field_format = "psi-ring";
+  int symmetry = 0;
+  double field_scale = 1.0;
+  std::string particle = "proton";
+  std::string energies;                ///< --energies spec
+  int harmonic = 0;                    ///< 0: machine's or none
+  double rf_MHz = 0;                   ///< 0: machine's or none
+  double azimuth_deg = 0;
+  int steps_per_cell = 4;
+  bool strict = false;                 ///< exit 65 if any energy has no closed orbit
+};
+
+/// Registers turnfit-orbit's options on app.
+void add_orbit_options(CLI::App& app, OrbitOptions& o);
+
+/// Runs turnfit-orbit: loads the field, computes the table, writes it. Returns the exit code.
+int run_orbit(const OrbitOptions& o);
+
+/// Writes rows as CSV (the orbit table format of architecture.md, plus r_avg_mm and status).
+void write_orbit_csv(std::ostream& os, const std::vector<OrbitRow>& rows);
+
+}  // namespace turnfit

@@ -1,0 +1,37 @@
+// Helpers for tests: where the shared reference data is, and skipping when it is absent.
+#pragma once
+
+#include <cstdlib>
+#include <string>
+#include <sys/stat.h>
+
+namespace turnfit::test {
+
+/// The shared data folder (env TURNFIT_SHARED overrides the build-time default).
+inline std::string shared_dir() {
+  if (const char* env = std::getenv("TURNFIT_SHARED")) return env;
+  return TURNFIT_SHARED_DIR;
+}
+
+/// Path of a file below shared/, or "" if it does not exist.
+inline std::string shared_file(const std::string& rel) {
+  std::string p = shared_dir() + "/" + rel;
+  struct stat st {};
+  return ::stat(p.c_str(), &st) == 0 ? p : std::string();
+}
+
+/// A file in tests/data.
+inline std::string test_file(const std::string& rel) {
+  return std::string(TURNFIT_TEST_DIR) + "/data/" + rel;
+}
+
+}  // namespace turnfit::test
+
+/// Skips the current Catch2 test (with a message) when shared data is missing.
+#define TURNFIT_REQUIRE_SHARED(var, rel)                                              \
+  const std::string var = turnfit::test::shared_file(rel);                           \
+  if (var.empty()) {                                                                  \
+    WARN("skipped: shared data " << rel << " not found under "                       \
+                                 << turnfit::test::shared_dir());                    \
+    return;                                                                           \
+  }
