@@ -231,7 +231,7 @@ PolarFieldMap read_field_map(const std::string& path, MapFormat format, int symm
 void write_psi_ring(std::ostream& os, const PolarFieldMap& map) {
   const PolarGrid& g = map.grid();
   const double dth_deg = g.dtheta_rad() / kDeg;
-  char buf[64];
+  char buf[256];
   auto num = [&](double v) {
     std::snprintf(buf, sizeof buf, "%.9g", v);
     return std::string(buf);

@@ -50,7 +50,7 @@ std::vector<std::string_view> split_lines(std::string_view text) {
 }
 
 std::string_view trim(std::string_view s) {
-  const char* blanks = " \t\r";
+  const char* blanks = " \t\r\n";
   size_t b = s.find_first_not_of(blanks);
   if (b == std::string_view::npos) return {};
   size_t e = s.find_last_not_of(blanks);

@@ -188,11 +188,17 @@ OrbitRow solve_orbit(const PolarFieldMap& map, const OrbitSettings& s, double en
   // nu = (N / 2 pi) acos(trace(M) / 2), valid for nu < N / 2 (physics.md).
   const double half_tr_r = 0.5 * (y[3] + y[6]);
   const double half_tr_z = 0.5 * (y[7] + y[10]);
+  // |trace/2| = 1 within round-off is marginal stability (nu = 0 or N/2, e.g. the
+  // vertical drift in a uniform field), not instability.
+  auto tune = [&](double half_tr) {
+    if (std::fabs(half_tr) > 1 + 1e-9) return kNaN;
+    return g.symmetry / (2 * kPi) * std::acos(std::clamp(half_tr, -1.0, 1.0));
+  };
+  row.nu_r = tune(half_tr_r);
+  row.nu_z = tune(half_tr_z);
   std::string unstable;
-  if (std::fabs(half_tr_r) < 1) row.nu_r = g.symmetry / (2 * kPi) * std::acos(half_tr_r);
-  else unstable = "radial";
-  if (std::fabs(half_tr_z) < 1) row.nu_z = g.symmetry / (2 * kPi) * std::acos(half_tr_z);
-  else unstable += unstable.empty() ? "vertical" : " and vertical";
+  if (std::isnan(row.nu_r)) unstable = "radial";
+  if (std::isnan(row.nu_z)) unstable += unstable.empty() ? "vertical" : " and vertical";
   if (!unstable.empty()) row.status = "unstable " + unstable + " motion (|trace/2| >= 1)";
   return row;
 }
