@@ -53,7 +53,7 @@ void add_orbit_options(CLI::App& app, OrbitOptions& o) {
       ->capture_default_str();
   app.add_option("--particle", o.particle, "proton, deuteron or alpha (without a machine file)")
       ->capture_default_str();
-  app.add_option("--energies", o.energies, "Kinetic energies [MeV]: FIRST:LAST:STEP or E1,E2,...")->required();
+  app.add_option("--energies", o.energies, "Kinetic energies [MeV]: FIRST:LAST:STEP or E1,E2,...");
   app.add_option("--harmonic", o.harmonic, "RF harmonic number h (for the phase slip)")->check(CLI::PositiveNumber);
   app.add_option("--rf-MHz", o.rf_MHz, "RF frequency [MHz] (for the phase slip)")->check(CLI::PositiveNumber);
   app.add_option("--azimuth-deg", o.azimuth_deg, "Azimuth where r and pr are reported [deg]")->capture_default_str();
@@ -62,10 +62,15 @@ void add_orbit_options(CLI::App& app, OrbitOptions& o) {
       ->capture_default_str();
   app.add_option("--set", o.sets, "Set a design variable or JSON pointer of the machine: NAME=VALUE");
   app.add_option("--dvars", o.dvars, "JSON file of design-variable values");
+  app.add_option("--write-map", o.write_map, "Also write the loaded (scaled) map to this file");
+  app.add_option("--write-map-format", o.write_map_format, "Format for --write-map")
+      ->check(CLI::IsMember({"psi-ring", "turnfit"}))
+      ->capture_default_str();
   app.add_flag("--strict", o.strict, "Exit 65 if any energy has no closed orbit or unstable motion");
   cli::add_common_options(app, o.common, cli::kOutput | cli::kFormat | cli::kThreads, {"csv", "json", "text"});
 }
 
+namespace {
 void write_orbit_csv(std::ostream& os, const std::vector<OrbitRow>& rows) {
   os << "energy_MeV,r_mm,pr_mrad,nu_r,nu_z,f_rev_MHz,phase_slip_deg_per_turn,r_avg_mm,status\n";
   for (const auto& r : rows) {
@@ -78,7 +83,6 @@ void write_orbit_csv(std::ostream& os, const std::vector<OrbitRow>& rows) {
   }
 }
 
-namespace {
 void write_orbit_json(std::ostream& os, const std::vector<OrbitRow>& rows, bool provenance) {
   nlohmann::json doc;
   if (provenance) doc["provenance"] = cli::provenance();
@@ -105,19 +109,34 @@ void write_orbit_text(std::ostream& os, const std::vector<OrbitRow>& rows) {
 }
 }  // namespace
 
-int run_orbit(const OrbitOptions& o) {
+void write_orbit_table(std::ostream& os, const std::vector<OrbitRow>& rows, const std::string& format,
+                       bool provenance) {
+  if (format == "json") {
+    write_orbit_json(os, rows, provenance);
+  } else if (format == "text") {
+    write_orbit_text(os, rows);
+  } else if (format == "csv" || format.empty()) {
+    if (provenance) os << cli::provenance_comment();
+    write_orbit_csv(os, rows);
+  } else {
+    throw usage_error("unknown --format '" + format + "'");
+  }
+}
+
+OrbitJob prepare_orbit(const OrbitOptions& o) {
   if (o.machine.empty() && o.field_map.empty())
     throw usage_error("give a machine file or --field-map FILE");
   if ((!o.sets.empty() || !o.dvars.empty()) && o.machine.empty())
     throw usage_error("--set and --dvars need a machine file");
-  if (o.machine == "-" && o.field_map == "-") throw usage_error("only one input can be stdin");
+  if (o.machine == "-" && (o.field_map == "-" || o.dvars == "-")) throw usage_error("only one input can be stdin");
   if (!(o.field_scale != 0) || !std::isfinite(o.field_scale)) throw usage_error("--field-scale must be non-zero");
-  const std::vector<double> energies = parse_energies(o.energies);
+  if (o.energies.empty() && o.write_map.empty()) throw usage_error("--energies is required (unless only --write-map)");
+  OrbitJob job;
+  if (!o.energies.empty()) job.energies = parse_energies(o.energies);
 
-  OrbitSettings s;
+  OrbitSettings& s = job.settings;
   s.azimuth_deg = o.azimuth_deg;
   s.steps_per_cell = o.steps_per_cell;
-  PolarFieldMap map;
   if (!o.machine.empty()) {
     Machine m = load_machine(o.machine);
     apply_sets(m, o.sets);
@@ -126,35 +145,36 @@ int run_orbit(const OrbitOptions& o) {
     s.charge_e = m.particle.charge_e;
     s.harmonic = m.rf.harmonic;
     s.rf_MHz = m.rf.frequency_MHz;
-    if (o.field_map.empty()) {
-      map = load_main_field(m);
-      if (o.field_scale != 1.0) map = scaled(map, o.field_scale);
-    }
+    if (o.field_map.empty()) job.map = scaled(load_main_field(m), o.field_scale);
   } else {
     Particle p = particle_named(o.particle);
     s.mass_MeV = p.mass_MeV;
     s.charge_e = p.charge_e;
   }
   if (!o.field_map.empty())
-    map = scaled(read_field_map(o.field_map, parse_map_format(o.field_format), o.symmetry), o.field_scale);
-  if (o.harmonic > 0) s.harmonic = o.harmonic;
-  if (o.rf_MHz > 0) s.rf_MHz = o.rf_MHz;
+    job.map = scaled(read_field_map(o.field_map, parse_map_format(o.field_format), o.symmetry), o.field_scale);
   if ((o.harmonic > 0) != (o.rf_MHz > 0) && !(s.harmonic > 0 && s.rf_MHz > 0))
     throw usage_error("--harmonic and --rf-MHz go together (or come from the machine file)");
+  if (o.harmonic > 0) s.harmonic = o.harmonic;
+  if (o.rf_MHz > 0) s.rf_MHz = o.rf_MHz;
+  return job;
+}
 
-  const bool show_progress = !o.common.quiet && cli::stderr_is_tty() && energies.size() > 64;
-  std::vector<OrbitRow> rows =
-      orbit_table(map, s, energies, cli::resolve_threads(o.common.threads), show_progress ? progress_bar : nullptr);
-
-  OutputFile out(o.common.output);
-  if (o.common.format == "json") {
-    write_orbit_json(out.stream(), rows, !o.common.no_provenance);
-  } else if (o.common.format == "text") {
-    write_orbit_text(out.stream(), rows);
-  } else {
-    if (!o.common.no_provenance) out.stream() << cli::provenance_comment();
-    write_orbit_csv(out.stream(), rows);
+int run_orbit(const OrbitOptions& o) {
+  OrbitJob job = prepare_orbit(o);
+  if (!o.write_map.empty()) {
+    OutputFile mapout(o.write_map);
+    if (parse_map_format(o.write_map_format) == MapFormat::turnfit) write_turnfit_map(mapout.stream(), job.map);
+    else write_psi_ring(mapout.stream(), job.map);
+    mapout.commit();
+    if (job.energies.empty()) return 0;
   }
+  const bool show_progress = !o.common.quiet && cli::stderr_is_tty() && job.energies.size() > 64;
+  std::vector<OrbitRow> rows = orbit_table(job.map, job.settings, job.energies,
+                                           cli::resolve_threads(o.common.threads),
+                                           show_progress ? progress_bar : nullptr);
+  OutputFile out(o.common.output);
+  write_orbit_table(out.stream(), rows, o.common.format, !o.common.no_provenance);
   out.commit();
 
   size_t bad = 0;

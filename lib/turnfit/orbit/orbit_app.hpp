@@ -26,17 +26,32 @@ struct OrbitOptions {
   int harmonic = 0;                    ///< 0: machine's or none
   double rf_MHz = 0;                   ///< 0: machine's or none
   double azimuth_deg = 0;
-  int steps_per_cell = 4;
+  int steps_per_cell = 2;
   bool strict = false;                 ///< exit 65 if any energy has no closed orbit
+  std::string write_map;               ///< --write-map: also write the loaded (scaled) map here
+  std::string write_map_format = "turnfit";
+};
+
+/// The field and settings an orbit run resolved from its options and machine file.
+struct OrbitJob {
+  PolarFieldMap map;
+  OrbitSettings settings;
+  std::vector<double> energies;  ///< empty when only a map is written
 };
 
 /// Registers turnfit-orbit's options on app.
 void add_orbit_options(CLI::App& app, OrbitOptions& o);
 
-/// Runs turnfit-orbit: loads the field, computes the table, writes it. Returns the exit code.
+/// Resolves options into a job: reads the machine and the map, applies --set/--dvars,
+/// checks option combinations (EX_USAGE) and parses the energies.
+OrbitJob prepare_orbit(const OrbitOptions& o);
+
+/// Runs turnfit-orbit: prepare, compute, write. Returns the exit code.
 int run_orbit(const OrbitOptions& o);
 
-/// Writes rows as CSV (the orbit table format of architecture.md, plus r_avg_mm and status).
-void write_orbit_csv(std::ostream& os, const std::vector<OrbitRow>& rows);
+/// Writes rows in a format: "csv" (the orbit table of architecture.md plus r_avg_mm and
+/// status), "json" ({"provenance", "orbits": [...]}) or "text" (aligned, for people).
+void write_orbit_table(std::ostream& os, const std::vector<OrbitRow>& rows, const std::string& format,
+                       bool provenance);
 
 }  // namespace turnfit
