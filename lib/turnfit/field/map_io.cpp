@@ -272,7 +272,7 @@ void write_psi_ring(std::ostream& os, const PolarFieldMap& map) {
   };
   const int nvals = 4 * g.ntheta;
   for (int i = 0; i < g.nr; ++i) {
-    std::snprintf(buf, sizeof buf, " LREC=%5d      IENT=    2      IREC=%5d\n", nvals, i + 1);
+    std::snprintf(buf, sizeof buf, " LREC= %5d     IENT=    2      IREC= %5d\n", nvals, i + 1);
     os << buf;
     for (int k = 0; k < nvals; ++k) {
       double v = k < g.ntheta ? map.value(i, k) / kKiloGauss : 0.0;

@@ -38,6 +38,9 @@ std::vector<std::string_view> split_fields(std::string_view line, char sep);
 /// Splits on runs of blanks.
 std::vector<std::string_view> split_blanks(std::string_view line);
 
+/// Levenshtein distance, for "did you mean" hints on misspelt names.
+size_t edit_distance(const std::string& a, const std::string& b);
+
 /// Formats a double so that reading it back gives the same value (%.17g).
 std::string format_exact(double v);
 

@@ -1,0 +1,640 @@
+// Loading and validating machine files: every key is checked so a typo or a wrong unit fails
+// loudly.
+#include "turnfit/machine/machine.hpp"
+
+#include <algorithm>
+#include <cctype>
+#include <cmath>
+#include <cstdio>
+#include <filesystem>
+#include <limits>
+#include <set>
+#include <utility>
+
+#include "turnfit/io/error.hpp"
+#include "turnfit/io/text.hpp"
+#include "turnfit/io/json.hpp"
+
+namespace turnfit {
+namespace {
+
+using nlohmann::json;
+
+const char* const kFormat = "turnfit-machine/1";
+
+// CODATA 2018 rest energies [MeV].
+constexpr double kProtonMass = 938.27208816;
+constexpr double kDeuteronMass = 1875.61294257;
+constexpr double kAlphaMass = 3727.3794066;
+constexpr double kElectronMass = 0.51099895;
+// H2+ = two protons + one electron - binding energy (16.25 eV, ionisation of H2+ to 2p + e).
+constexpr double kH2PlusMass = 2 * kProtonMass + kElectronMass - 16.25e-6;
+
+std::string num(double v) {
+  char buf[40];
+  std::snprintf(buf, sizeof buf, "%.10g", v);
+  return buf;
+}
+
+// RFC 6901 escaping, so a key containing '/' or '~' still gives a usable path.
+std::string escape_key(const std::string& key) {
+  std::string out;
+  for (char c : key) {
+    if (c == '~')
+      out += "~0";
+    else if (c == '/')
+      out += "~1";
+    else
+      out += c;
+  }
+  return out;
+}
+
+std::string lower_case(std::string s) {
+  for (char& c : s) c = static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
+  return s;
+}
+
+// A hint for an unknown key. Units live in key suffixes, so the most likely mistake is the
+// right quantity in the wrong unit (voltage_kV for voltage_MV): say so explicitly.
+std::string unknown_key_hint(const std::string& key, const std::vector<std::string>& known) {
+  auto stem_of = [](const std::string& k) -> std::string {
+    size_t u = k.rfind('_');
+    return (u == std::string::npos || u == 0) ? std::string() : k.substr(0, u);
+  };
+  std::string stem = stem_of(key);
+  for (const auto& k : known) {
+    std::string ks = stem_of(k);
+    if (ks.empty()) continue;
+    if (!stem.empty() && ks == stem) return " (wrong unit: expected '" + k + "')";
+    if (ks == key) return " (missing unit: expected '" + k + "')";
+  }
+  std::string best;
+  size_t best_d = 3;
+  for (const auto& k : known) {
+    size_t d = lower_case(k) == lower_case(key) ? 0 : edit_distance(key, k);
+    if (d < best_d) best_d = d, best = k;
+  }
+  if (!best.empty()) return " (did you mean '" + best + "'?)";
+  return {};
+}
+
+// Reads one JSON object, checking its keys against a fixed list and writing defaults of
+// numeric keys back, so the normalized document has every number a design variable may
+// point at.
+class Reader {
+ public:
+  Reader(json& obj, const std::string& file, std::string path, std::vector<std::string> known)
+      : obj_(obj), file_(file), path_(std::move(path)), known_(std::move(known)) {
+    if (!obj_.is_object()) throw error_here("expected a JSON object, got " + type_name(obj_));
+    for (const auto& item : obj_.items()) {
+      if (std::find(known_.begin(), known_.end(), item.key()) == known_.end())
+        throw error(item.key(), "unknown key" + unknown_key_hint(item.key(), known_));
+    }
+  }
+
+  bool has(const std::string& key) const { return obj_.contains(key); }
+  json& raw(const std::string& key) { return obj_[key]; }
+  std::string at(const std::string& key) const { return path_ + "/" + escape_key(key); }
+
+  Error error(const std::string& key, const std::string& msg) const {
+    return data_error(file_, 0, at(key) + ": " + msg);
+  }
+  Error error_here(const std::string& msg) const {
+    return data_error(file_, 0, (path_.empty() ? std::string("/") : path_) + ": " + msg);
+  }
+
+  static std::string type_name(const json& j) {
+    if (j.is_number()) return "a number";
+    if (j.is_string()) return "a string";
+    if (j.is_boolean()) return "a boolean";
+    if (j.is_null()) return "null";
+    if (j.is_array()) return "an array";
+    return "an object";
+  }
+
+  /// A finite number; absent: the default (written back) or, without one, an error.
+  double number(const std::string& key, std::optional<double> def = std::nullopt) {
+    if (!has(key)) {
+      if (!def) throw error(key, "missing required key");
+      obj_[key] = *def;
+      return *def;
+    }
+    return as_number(obj_[key], at(key));
+  }
+
+  std::optional<double> opt_number(const std::string& key) {
+    if (!has(key)) return std::nullopt;
+    return as_number(obj_[key], at(key));
+  }
+
+  double as_number(const json& j, const std::string& where) const {
+    if (!j.is_number())
+      throw data_error(file_, 0, where + ": expected a number, got " + type_name(j));
+    double v = j.get<double>();
+    if (!std::isfinite(v)) throw data_error(file_, 0, where + ": not a finite number");
+    return v;
+  }
+
+  int as_integer(const json& j, const std::string& where) const {
+    double v = as_number(j, where);
+    // JSON has one number type: 8.0 is an integer too.
+    if (v != std::floor(v) || std::fabs(v) > std::numeric_limits<int>::max())
+      throw data_error(file_, 0, where + ": expected an integer, got " + num(v));
+    return static_cast<int>(v);
+  }
+
+  int integer(const std::string& key, std::optional<int> def = std::nullopt) {
+    if (!has(key)) {
+      if (!def) throw error(key, "missing required key");
+      obj_[key] = *def;
+      return *def;
+    }
+    return as_integer(obj_[key], at(key));
+  }
+
+  std::string string(const std::string& key, std::optional<std::string> def = std::nullopt) {
+    if (!has(key)) {
+      if (!def) throw error(key, "missing required key");
+      return *def;
+    }
+    const json& j = obj_[key];
+    if (!j.is_string()) throw error(key, "expected a string, got " + type_name(j));
+    return j.get<std::string>();
+  }
+
+  bool boolean(const std::string& key, bool def) {
+    if (!has(key)) return def;
+    const json& j = obj_[key];
+    if (!j.is_boolean()) throw error(key, "expected true or false, got " + type_name(j));
+    return j.get<bool>();
+  }
+
+  std::vector<double> numbers(const std::string& key) {
+    std::vector<double> out;
+    if (!has(key)) return out;
+    const json& j = obj_[key];
+    if (!j.is_array()) throw error(key, "expected an array of numbers, got " + type_name(j));
+    for (size_t i = 0; i < j.size(); ++i)
+      out.push_back(as_number(j[i], at(key) + "/" + std::to_string(i)));
+    return out;
+  }
+
+  std::string one_of(const std::string& key, const std::vector<std::string>& choices,
+                     std::optional<std::string> def) {
+    std::string v = string(key, def);
+    if (std::find(choices.begin(), choices.end(), v) == choices.end()) {
+      std::string list;
+      for (size_t i = 0; i < choices.size(); ++i)
+        list += (i ? (i + 1 == choices.size() ? " or " : ", ") : "") + choices[i];
+      throw error(key, "unknown value '" + v + "' (expected " + list + ")");
+    }
+    return v;
+  }
+
+ private:
+  json& obj_;
+  const std::string& file_;
+  std::string path_;
+  std::vector<std::string> known_;
+};
+
+std::string resolve_path(const std::string& dir, const std::string& p) {
+  if (p.empty() || dir.empty() || std::filesystem::path(p).is_absolute()) return p;
+  return (std::filesystem::path(dir) / p).string();
+}
+
+// Checks that `name` is a non-empty string not used before in the same list.
+std::string element_name(Reader& r, std::map<std::string, std::string>& seen) {
+  std::string name = r.string("name");
+  if (name.empty()) throw r.error("name", "must not be empty");
+  auto [it, fresh] = seen.emplace(name, r.at("name"));
+  if (!fresh) throw r.error("name", "duplicate name '" + name + "' (also " + it->second + ")");
+  return name;
+}
+
+json& array_at(json& doc, const std::string& key, const std::string& file) {
+  json& a = doc[key];
+  if (!a.is_array())
+    throw data_error(file, 0, "/" + key + ": expected a JSON array, got " + Reader::type_name(a));
+  return a;
+}
+
+Particle read_particle(json& j, const std::string& file) {
+  Reader r(j, file, "/particle", {"species", "mass_MeV", "charge_e"});
+  Particle p;
+  p.species = r.one_of("species", {"proton", "deuteron", "alpha", "h2+", "custom"}, "proton");
+  if (p.species == "custom") {
+    p.mass_MeV = r.number("mass_MeV");
+    p.charge_e = r.number("charge_e");
+    if (p.mass_MeV <= 0) throw r.error("mass_MeV", "must be > 0, got " + num(p.mass_MeV));
+    if (p.charge_e == 0) throw r.error("charge_e", "must not be 0");
+    return p;
+  }
+  // A named species fixes mass and charge; a second source of truth would drift.
+  for (const char* k : {"mass_MeV", "charge_e"})
+    if (r.has(k)) throw r.error(k, "only allowed with species 'custom'");
+  if (p.species == "proton")
+    p.mass_MeV = kProtonMass, p.charge_e = 1;
+  else if (p.species == "deuteron")
+    p.mass_MeV = kDeuteronMass, p.charge_e = 1;
+  else if (p.species == "alpha")
+    p.mass_MeV = kAlphaMass, p.charge_e = 2;
+  else
+    p.mass_MeV = kH2PlusMass, p.charge_e = 1;
+  return p;
+}
+
+FieldSpec read_field(json& j, const std::string& file, const std::string& dir) {
+  Reader r(j, file, "/field", {"map", "format", "symmetry", "scale", "trimcoil_threshold_T"});
+  FieldSpec f;
+  f.map = r.string("map");
+  if (f.map.empty()) throw r.error("map", "must not be empty");
+  f.map = resolve_path(dir, f.map);
+  f.format = r.one_of("format", {"psi-ring", "turnfit"}, "psi-ring");
+  f.symmetry = r.integer("symmetry", 0);
+  if (f.symmetry < 0)
+    throw r.error("symmetry", "must be >= 1 (0: from the map), got " + num(f.symmetry));
+  f.scale = r.number("scale", 1.0);
+  if (f.scale == 0) throw r.error("scale", "must not be 0");
+  f.trimcoil_threshold_T = r.number("trimcoil_threshold_T", 0.0);
+  if (f.trimcoil_threshold_T < 0)
+    throw r.error("trimcoil_threshold_T", "must be >= 0, got " + num(f.trimcoil_threshold_T));
+  return f;
+}
+
+RfSystem read_rf(json& j, const std::string& file) {
+  Reader r(j, file, "/rf", {"harmonic", "frequency_MHz"});
+  RfSystem rf;
+  rf.harmonic = r.integer("harmonic", 1);
+  if (rf.harmonic < 1) throw r.error("harmonic", "must be >= 1, got " + num(rf.harmonic));
+  rf.frequency_MHz = r.number("frequency_MHz", 0.0);
+  if (rf.frequency_MHz < 0)
+    throw r.error("frequency_MHz", "must be >= 0, got " + num(rf.frequency_MHz));
+  return rf;
+}
+
+Cavity read_cavity(json& j, const std::string& file, const std::string& path,
+                   const std::string& dir, std::map<std::string, std::string>& seen) {
+  Reader r(j, file, path,
+           {"name", "type", "voltage_MV", "profile", "harmonic_factor", "phase_deg", "angle_deg",
+            "pdis_mm", "rmin_mm", "rmax_mm", "gap_width_mm", "rshift_mm"});
+  Cavity c;
+  c.name = element_name(r, seen);
+  c.type = r.one_of("type", {"single-gap"}, "single-gap");
+  c.voltage_MV = r.number("voltage_MV", 0.0);
+  if (r.has("profile")) {
+    c.profile = r.string("profile");
+    if (c.profile.empty())
+      throw r.error("profile", "must not be empty (leave it out for a flat profile)");
+    c.profile = resolve_path(dir, c.profile);
+  }
+  c.harmonic_factor = r.number("harmonic_factor", 1.0);
+  if (c.harmonic_factor <= 0)
+    throw r.error("harmonic_factor", "must be > 0, got " + num(c.harmonic_factor));
+  c.phase_deg = r.number("phase_deg", 0.0);
+  c.angle_deg = r.number("angle_deg", 0.0);
+  c.pdis_mm = r.number("pdis_mm", 0.0);
+  c.rmin_mm = r.number("rmin_mm", 0.0);
+  c.rmax_mm = r.number("rmax_mm");
+  if (c.rmin_mm < 0) throw r.error("rmin_mm", "must be >= 0, got " + num(c.rmin_mm));
+  if (c.rmax_mm <= c.rmin_mm)
+    throw r.error("rmax_mm", "must be > rmin_mm (" + num(c.rmin_mm) + "), got " + num(c.rmax_mm));
+  c.gap_width_mm = r.number("gap_width_mm", 0.0);
+  if (c.gap_width_mm < 0) throw r.error("gap_width_mm", "must be >= 0, got " + num(c.gap_width_mm));
+  c.rshift_mm = r.number("rshift_mm", 0.0);
+  return c;
+}
+
+TrimCoil read_trimcoil(json& j, const std::string& file, const std::string& path,
+                       const std::string& dir, int symmetry,
+                       std::map<std::string, std::string>& seen) {
+  Reader r(j, file, path,
+           {"name", "type", "rmin_mm", "rmax_mm", "bmax_T", "coefnum", "coefdenom", "slope_per_mm",
+            "table", "sectors", "phimin_deg", "phimax_deg"});
+  TrimCoil t;
+  t.name = element_name(r, seen);
+  t.type =
+      r.one_of("type", {"psi-bfield", "psi-phase", "psi-bfield-mirrored", "table"}, "psi-bfield");
+  t.rmin_mm = r.number("rmin_mm", 0.0);
+  t.rmax_mm = r.number("rmax_mm");
+  if (t.rmin_mm < 0) throw r.error("rmin_mm", "must be >= 0, got " + num(t.rmin_mm));
+  if (t.rmax_mm <= t.rmin_mm)
+    throw r.error("rmax_mm", "must be > rmin_mm (" + num(t.rmin_mm) + "), got " + num(t.rmax_mm));
+  t.bmax_T = r.number("bmax_T", 0.0);
+  t.coefnum = r.numbers("coefnum");
+  t.coefdenom = r.numbers("coefdenom");
+  if ((t.type == "psi-bfield" || t.type == "psi-phase") && t.coefnum.empty())
+    throw r.error("coefnum", "a " + t.type + " coil needs at least one numerator coefficient");
+  if (auto s = r.opt_number("slope_per_mm")) t.slope_per_mm = *s;
+  if (t.type == "psi-bfield-mirrored") {
+    if (!r.has("slope_per_mm"))
+      throw r.error("slope_per_mm", "missing required key (type psi-bfield-mirrored)");
+    if (t.slope_per_mm <= 0)
+      throw r.error("slope_per_mm", "must be > 0, got " + num(t.slope_per_mm));
+  }
+  if (t.type == "table") {
+    if (!r.has("table")) throw r.error("table", "missing required key (type table)");
+  }
+  if (r.has("table")) {
+    t.table = r.string("table");
+    if (t.table.empty()) throw r.error("table", "must not be empty");
+    t.table = resolve_path(dir, t.table);
+  }
+  if (r.has("sectors")) {
+    const json& s = r.raw("sectors");
+    if (!s.is_array())
+      throw r.error("sectors", "expected an array of sector numbers, got " + Reader::type_name(s));
+    std::set<int> used;
+    for (size_t i = 0; i < s.size(); ++i) {
+      std::string where = r.at("sectors") + "/" + std::to_string(i);
+      int k = r.as_integer(s[i], where);
+      if (k < 1 || (symmetry > 0 && k > symmetry)) {
+        std::string range = symmetry > 0 ? "1.." + std::to_string(symmetry) : ">= 1";
+        throw data_error(file, 0,
+                         where + ": sector " + std::to_string(k) + " out of range (" + range + ")");
+      }
+      if (!used.insert(k).second)
+        throw data_error(file, 0, where + ": sector " + std::to_string(k) + " listed twice");
+      t.sectors.push_back(k);
+    }
+  }
+  t.phimin_deg = r.number("phimin_deg", 0.0);
+  t.phimax_deg = r.number("phimax_deg", 360.0);
+  if (t.phimax_deg <= t.phimin_deg)
+    throw r.error("phimax_deg",
+                  "must be > phimin_deg (" + num(t.phimin_deg) + "), got " + num(t.phimax_deg));
+  return t;
+}
+
+Probe read_probe(json& j, const std::string& file, const std::string& path,
+                 std::map<std::string, std::string>& seen) {
+  Reader r(j, file, path,
+           {"name", "phi_deg", "a_mm", "s_min_mm", "s_max_mm", "shift_mm", "step_mm"});
+  Probe p;
+  p.name = element_name(r, seen);
+  p.phi_deg = r.number("phi_deg", 0.0);
+  p.a_mm = r.number("a_mm", 0.0);
+  p.s_min_mm = r.number("s_min_mm", 0.0);
+  p.s_max_mm = r.number("s_max_mm");
+  if (p.s_max_mm <= p.s_min_mm)
+    throw r.error("s_max_mm",
+                  "must be > s_min_mm (" + num(p.s_min_mm) + "), got " + num(p.s_max_mm));
+  p.shift_mm = r.number("shift_mm", 0.0);
+  p.step_mm = r.number("step_mm", 0.5);
+  if (p.step_mm <= 0) throw r.error("step_mm", "must be > 0, got " + num(p.step_mm));
+  return p;
+}
+
+Injection read_injection(json& j, const std::string& file) {
+  Reader r(j, file, "/injection",
+           {"energy_MeV", "r_mm", "pr_betagamma", "phi_deg", "z_mm", "pz_betagamma", "t_ns"});
+  Injection in;
+  in.energy_MeV = r.number("energy_MeV");
+  if (in.energy_MeV <= 0) throw r.error("energy_MeV", "must be > 0, got " + num(in.energy_MeV));
+  in.r_mm = r.number("r_mm");
+  if (in.r_mm <= 0) throw r.error("r_mm", "must be > 0, got " + num(in.r_mm));
+  in.pr_betagamma = r.number("pr_betagamma", 0.0);
+  in.phi_deg = r.number("phi_deg", 0.0);
+  in.z_mm = r.number("z_mm", 0.0);
+  in.pz_betagamma = r.number("pz_betagamma", 0.0);
+  in.t_ns = r.number("t_ns", 0.0);
+  return in;
+}
+
+Tracking read_tracking(json& j, const std::string& file) {
+  Reader r(j, file, "/tracking", {"integrator", "steps_per_turn", "turns"});
+  Tracking t;
+  t.integrator = r.string("integrator", std::string());
+  t.steps_per_turn = r.integer("steps_per_turn", 0);
+  if (t.steps_per_turn < 0)
+    throw r.error("steps_per_turn", "must be >= 0, got " + num(t.steps_per_turn));
+  t.turns = r.integer("turns", 0);
+  if (t.turns < 0) throw r.error("turns", "must be >= 0, got " + num(t.turns));
+  return t;
+}
+
+json read_effects(json& a, const std::string& file) {
+  if (!a.is_array())
+    throw data_error(file, 0, "/effects: expected a JSON array, got " + Reader::type_name(a));
+  for (size_t i = 0; i < a.size(); ++i) {
+    std::string where = "/effects/" + std::to_string(i);
+    if (!a[i].is_object())
+      throw data_error(file, 0, where + ": expected a JSON object, got " + Reader::type_name(a[i]));
+    if (!a[i].contains("type")) throw data_error(file, 0, where + "/type: missing required key");
+    if (!a[i]["type"].is_string() || a[i]["type"].get<std::string>().empty())
+      throw data_error(file, 0, where + "/type: expected a non-empty string");
+  }
+  return a;
+}
+
+// A design-variable target must be a number the user may vary: not the format tag and not
+// the bounds of another design variable.
+void check_pointer(const json& doc, const std::string& p, const std::string& file,
+                   const std::string& where) {
+  if (p.empty() || p[0] != '/')
+    throw data_error(file, 0, where + ": JSON pointer must start with '/', got '" + p + "'");
+  if (p.rfind("/dvars", 0) == 0 || p.rfind("/format", 0) == 0)
+    throw data_error(file, 0, where + ": '" + p + "' cannot be a design-variable target");
+  json::json_pointer ptr;
+  try {
+    ptr = json::json_pointer(p);
+  } catch (const json::exception&) {
+    throw data_error(file, 0, where + ": '" + p + "' is not a valid JSON pointer");
+  }
+  if (!doc.contains(ptr))
+    throw data_error(file, 0, where + ": '" + p + "' does not exist in the machine");
+  if (!doc.at(ptr).is_number()) throw data_error(file, 0, where + ": '" + p + "' is not a number");
+}
+
+bool valid_dvar_name(const std::string& n) {
+  if (n.empty() || !(std::isalpha(static_cast<unsigned char>(n[0])) || n[0] == '_')) return false;
+  return std::all_of(n.begin(), n.end(), [](char c) {
+    return std::isalnum(static_cast<unsigned char>(c)) || c == '_' || c == '.' || c == '-';
+  });
+}
+
+// The "dvars" section: new variables (pointer or targets) and bound overrides of built-ins.
+void read_dvars(const json& section, const json& doc, const std::string& file,
+                std::map<std::string, DesignVariable>& dvars) {
+  if (!section.is_object())
+    throw data_error(file, 0, "/dvars: expected a JSON object, got " + Reader::type_name(section));
+  for (const auto& item : section.items()) {
+    const std::string& name = item.key();
+    std::string path = "/dvars/" + escape_key(name);
+    if (!valid_dvar_name(name))
+      throw data_error(
+          file, 0,
+          path +
+              ": design-variable names start with a letter and use letters, digits, '_', '.', '-'");
+    json entry = item.value();
+    Reader r(entry, file, path,
+             {"pointer", "targets", "scale", "add", "lower", "upper", "unit", "description"});
+    auto lower = r.opt_number("lower");
+    auto upper = r.opt_number("upper");
+    DesignVariable dv;
+    bool defines = r.has("pointer") || r.has("targets");
+    if (!defines) {
+      auto it = dvars.find(name);
+      if (it == dvars.end())
+        throw r.error_here("needs 'pointer' or 'targets' ('" + name +
+                           "' is not a built-in design variable of this machine)");
+      for (const char* k : {"scale", "add", "unit"})
+        if (r.has(k))
+          throw r.error(k, "a built-in design variable takes only lower, upper and description");
+      dv = it->second;
+    } else {
+      if (r.has("pointer") && r.has("targets"))
+        throw r.error("targets", "give either 'pointer' or 'targets', not both");
+      dv.name = name;
+      dv.unit = r.string("unit", std::string());
+      if (!lower) throw r.error("lower", "missing required key");
+      if (!upper) throw r.error("upper", "missing required key");
+      if (r.has("pointer")) {
+        DesignVariable::Target t;
+        t.pointer = r.string("pointer");
+        t.scale = r.number("scale", 1.0);
+        t.add = r.boolean("add", false);
+        if (t.scale == 0) throw r.error("scale", "must not be 0");
+        check_pointer(doc, t.pointer, file, r.at("pointer"));
+        dv.targets.push_back(t);
+      } else {
+        for (const char* k : {"scale", "add"})
+          if (r.has(k)) throw r.error(k, "goes into each entry of 'targets'");
+        json& ts = r.raw("targets");
+        if (!ts.is_array() || ts.empty())
+          throw r.error("targets", "expected a non-empty array of {pointer, scale, add}");
+        for (size_t i = 0; i < ts.size(); ++i) {
+          Reader tr(ts[i], file, r.at("targets") + "/" + std::to_string(i),
+                    {"pointer", "scale", "add"});
+          DesignVariable::Target t;
+          t.pointer = tr.string("pointer");
+          t.scale = tr.number("scale", 1.0);
+          t.add = tr.boolean("add", false);
+          if (t.scale == 0) throw tr.error("scale", "must not be 0");
+          check_pointer(doc, t.pointer, file, tr.at("pointer"));
+          // One value per variable: either it sets every target or it shifts every target.
+          if (!dv.targets.empty() && t.add != dv.targets.front().add)
+            throw tr.error("add", "all targets of a design variable must agree on 'add'");
+          dv.targets.push_back(t);
+        }
+      }
+    }
+    if (r.has("description")) dv.description = r.string("description");
+    if (lower) dv.lower = *lower;
+    if (upper) dv.upper = *upper;
+    if (!(dv.lower < dv.upper))
+      throw r.error_here("lower (" + num(dv.lower) + ") must be < upper (" + num(dv.upper) + ")");
+    // A nominal value outside the bounds is almost always a unit slip (MeV bounds on a GeV
+    // variable); the document has no additive offsets applied yet, so its value is nominal.
+    const auto& t0 = dv.targets.front();
+    double nominal = t0.add ? 0.0 : doc.at(json::json_pointer(t0.pointer)).get<double>() / t0.scale;
+    if (nominal < dv.lower || nominal > dv.upper)
+      throw r.error_here("nominal value " + num(nominal) + " is outside [" + num(dv.lower) + ", " +
+                         num(dv.upper) + "]");
+    dvars[name] = dv;
+  }
+}
+
+// Trim coil 3 may be called TC3 or TC03; with both, tc03mb would not know which to move.
+void check_tc_aliases(const Machine& m, const std::string& file) {
+  for (int n = 1; n < 10; ++n) {
+    std::string a = "TC" + std::to_string(n), b = "TC0" + std::to_string(n);
+    int ia = -1, ib = -1;
+    for (size_t i = 0; i < m.trimcoils.size(); ++i) {
+      if (m.trimcoils[i].name == a) ia = static_cast<int>(i);
+      if (m.trimcoils[i].name == b) ib = static_cast<int>(i);
+    }
+    if (ia >= 0 && ib >= 0)
+      throw data_error(file, 0,
+                       "/trimcoils/" + std::to_string(std::max(ia, ib)) + "/name: '" + a +
+                           "' and '" + b + "' both name trim coil " + std::to_string(n) + " (tc0" +
+                           std::to_string(n) + "mb would be ambiguous)");
+  }
+}
+
+// Validates and normalizes; with_dvars = false skips the design variables (revalidate keeps
+// the loaded ones, whose bounds must not drift with every set).
+Machine build(const json& input, const std::string& file, const std::string& dir, bool with_dvars) {
+  Machine m;
+  m.dir = dir;
+  m.doc = input;
+  json& doc = m.doc;
+  Reader top(doc, file, "",
+             {"format", "name", "description", "particle", "field", "rf", "cavities", "trimcoils",
+              "probes", "injection", "tracking", "effects", "dvars"});
+  std::string format = top.string("format");
+  if (format != kFormat)
+    throw top.error("format", "expected '" + std::string(kFormat) + "', got '" + format + "'");
+  m.name = top.string("name", std::string());
+  top.string("description", std::string());
+  if (top.has("particle")) m.particle = read_particle(doc["particle"], file);
+  if (!top.has("field")) throw top.error("field", "missing required key");
+  m.field = read_field(doc["field"], file, dir);
+  if (top.has("rf")) m.rf = read_rf(doc["rf"], file);
+  if (top.has("cavities")) {
+    json& a = array_at(doc, "cavities", file);
+    std::map<std::string, std::string> seen;
+    for (size_t i = 0; i < a.size(); ++i)
+      m.cavities.push_back(read_cavity(a[i], file, "/cavities/" + std::to_string(i), dir, seen));
+  }
+  if (top.has("trimcoils")) {
+    json& a = array_at(doc, "trimcoils", file);
+    std::map<std::string, std::string> seen;
+    for (size_t i = 0; i < a.size(); ++i)
+      m.trimcoils.push_back(read_trimcoil(a[i], file, "/trimcoils/" + std::to_string(i), dir,
+                                          m.field.symmetry, seen));
+    check_tc_aliases(m, file);
+  }
+  if (top.has("probes")) {
+    json& a = array_at(doc, "probes", file);
+    std::map<std::string, std::string> seen;
+    for (size_t i = 0; i < a.size(); ++i)
+      m.probes.push_back(read_probe(a[i], file, "/probes/" + std::to_string(i), seen));
+  }
+  if (top.has("injection")) m.injection = read_injection(doc["injection"], file);
+  if (top.has("tracking")) m.tracking = read_tracking(doc["tracking"], file);
+  if (top.has("effects")) m.effects = read_effects(doc["effects"], file);
+  if (with_dvars) {
+    // Built-ins first: a file entry of the same name overrides their bounds or definition.
+    m.dvars = builtin_dvars(m);
+    if (top.has("dvars")) read_dvars(doc["dvars"], doc, file, m.dvars);
+    for (const auto& [name, dv] : m.dvars)
+      if (!dv.targets.empty() && dv.targets.front().add) m.dvar_offsets[name] = 0.0;
+  } else if (top.has("dvars") && !doc["dvars"].is_object()) {
+    throw data_error(file, 0, "/dvars: expected a JSON object");
+  }
+  return m;
+}
+
+std::string message_name(const std::string& path) {
+  if (path.empty()) return "<machine>";
+  if (path == "-") return "<stdin>";
+  return path;
+}
+
+}  // namespace
+
+Machine machine_from_json(const nlohmann::json& doc, const std::string& name,
+                          const std::string& dir) {
+  return build(doc, name, dir, true);
+}
+
+Machine load_machine(const std::string& path) {
+  json doc = read_json(path);
+  std::string dir;
+  if (path != "-" && !path.empty()) dir = std::filesystem::path(path).parent_path().string();
+  Machine m = machine_from_json(doc, message_name(path), dir);
+  m.path = path;
+  return m;
+}
+
+void revalidate(Machine& m) {
+  Machine n = build(m.doc, message_name(m.path), m.dir, false);
+  n.path = m.path;
+  n.dvars = std::move(m.dvars);
+  n.dvar_offsets = std::move(m.dvar_offsets);
+  m = std::move(n);
+}
+
+}  // namespace turnfit
