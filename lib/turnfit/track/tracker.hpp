@@ -1,0 +1,78 @@
+// Single-particle tracking through a cyclotron: RF gap kicks, trim coils, probe crossings.
+#pragma once
+
+#include <functional>
+#include <string>
+#include <vector>
+
+#include "turnfit/machine/machine.hpp"
+#include "turnfit/track/model.hpp"
+
+namespace turnfit {
+
+/// A particle's phase-space point: position [m], momentum in units of m c (beta gamma
+/// components), time [s].
+struct ParticleState {
+  double x = 0, y = 0, z = 0;
+  double px = 0, py = 0, pz = 0;
+  double t = 0;
+};
+
+/// One crossing of a probe, as turns.csv records it.
+struct TurnRecord {
+  int probe = 0;          ///< index into TrackModel::probes
+  int turn = 0;           ///< 1 for the first crossing of this probe line, 2 for the next, ...
+  double r_mm = 0;        ///< radius of the crossing point, minus the probe's shift
+  double s_mm = 0;        ///< position along the probe, minus its shift
+  double t_ns = 0;        ///< time since the start
+  double energy_MeV = 0;  ///< kinetic energy
+  double phase_deg = 0;   ///< RF phase 360 f_rf t, wrapped to (-180, 180]
+};
+
+/// One gap crossing, for diagnostics and tests.
+struct KickRecord {
+  int gap = 0;
+  int turn = 0;
+  double theta_deg = 0;
+  GapKick kick;
+};
+
+/// How a track ended.
+struct TrackEnd {
+  bool lost = false;
+  std::string status;       ///< "turn limit", or "lost: ..." with where and when
+  double turns = 0;         ///< revolutions completed (fractional)
+  double energy_MeV = 0;
+  double r_mm = 0;
+  double theta_deg = 0;
+  double t_ns = 0;
+};
+
+/// Tracking settings.
+struct TrackSettings {
+  /// "azimuth": RK4 in azimuth with steps aligned to the field map's grid, exact gap and probe
+  /// crossings (the default); "rk4": RK4 in time with a fixed number of steps per turn (OPAL's
+  /// scheme) and crossings interpolated between steps.
+  std::string integrator = "azimuth";
+  int steps_per_turn = 0;  ///< rk4: steps per RF period times h (default 2880)
+  int steps_per_cell = 1;  ///< azimuth: steps per map cell
+  double turns = 190;      ///< revolutions to track
+  GapPhysics gap_physics = GapPhysics::turnfit;
+};
+
+/// Names and one-line descriptions of the integrators.
+std::vector<std::pair<std::string, std::string>> list_integrators();
+
+/// The injection state of a machine (OPAL's convention: total momentum from the energy,
+/// p_r given, p_theta along increasing azimuth, rotated to the injection azimuth).
+ParticleState injection_state(const Injection& inj, double mass_MeV);
+
+/// Kinetic energy [MeV] of a state.
+double kinetic_energy(const ParticleState& s, double mass_MeV);
+
+/// Tracks one particle; appends its probe crossings to `turns` (and gap kicks to `kicks` if
+/// given). Never throws for physics: losses are reported in the result.
+TrackEnd track_particle(const TrackModel& model, const ParticleState& start, const TrackSettings& settings,
+                        std::vector<TurnRecord>& turns, std::vector<KickRecord>* kicks = nullptr);
+
+}  // namespace turnfit

@@ -1,0 +1,155 @@
+// Trim coil field models (physics.md "Trim coil models"; paper Sec. II.C and IV.C).
+#include "turnfit/trimcoil/trimcoil.hpp"
+
+#include <algorithm>
+#include <cmath>
+
+#include "turnfit/io/csv.hpp"
+#include "turnfit/io/error.hpp"
+
+namespace turnfit {
+namespace {
+constexpr double kPi = 3.14159265358979323846;
+
+void poly(const std::vector<double>& c, double x, double& p, double& dp, double& d2p) {
+  p = dp = d2p = 0;
+  for (size_t i = c.size(); i-- > 0;) {  // Horner with derivatives
+    d2p = d2p * x + 2 * dp;
+    dp = dp * x + p;
+    p = p * x + c[i];
+  }
+}
+}  // namespace
+
+void rational(const std::vector<double>& num, const std::vector<double>& den, double x, double& q,
+              double& dq, double& d2q) {
+  double f, df, d2f;
+  poly(num, x, f, df, d2f);
+  if (den.empty()) {
+    q = f;
+    dq = df;
+    d2q = d2f;
+    return;
+  }
+  double g, dg, d2g;
+  poly(den, x, g, dg, d2g);
+  q = f / g;
+  dq = (df - q * dg) / g;
+  d2q = (d2f - 2 * dq * dg - q * d2g) / g;
+}
+
+TrimCoilField::TrimCoilField(const TrimCoil& coil, int symmetry) : coil_(coil), symmetry_(symmetry) {
+  const std::string where = "trim coil '" + coil.name + "'";
+  if (coil.type == "psi-bfield") kind_ = 0;
+  else if (coil.type == "psi-phase") kind_ = 1;
+  else if (coil.type == "psi-bfield-mirrored") kind_ = 2;
+  else if (coil.type == "table") kind_ = 3;
+  else throw Error(ExitCode::data, where + ": unknown type '" + coil.type + "'");
+  if (!(coil.rmax_mm > coil.rmin_mm)) throw Error(ExitCode::data, where + ": rmax_mm must exceed rmin_mm");
+  if ((kind_ == 0 || kind_ == 1) && coil.coefnum.empty())
+    throw Error(ExitCode::data, where + ": coefnum is empty");
+  if (kind_ == 2 && !(coil.slope_per_mm > 0)) throw Error(ExitCode::data, where + ": slope_per_mm must be positive");
+  if (kind_ == 3) {
+    CsvTable t = CsvTable::read(coil.table);
+    t.require_columns({"r_mm", "b_shape"});
+    const size_t cr = t.column("r_mm"), cs = t.column("b_shape");
+    for (size_t i = 0; i < t.rows(); ++i) {
+      tr_.push_back(t.number(i, cr) * 1e-3);
+      ts_.push_back(t.number(i, cs));
+      if (i > 0 && !(tr_[i] > tr_[i - 1]))
+        throw data_error(t.name(), t.line(i), "r_mm must increase strictly");
+    }
+    if (tr_.size() < 2) throw data_error(t.name(), 0, "a trim coil table needs at least 2 rows");
+    // Monotone-preserving (Fritsch-Carlson) slopes: no overshoot between measured points.
+    const size_t n = tr_.size();
+    std::vector<double> d(n - 1);
+    for (size_t i = 0; i + 1 < n; ++i) d[i] = (ts_[i + 1] - ts_[i]) / (tr_[i + 1] - tr_[i]);
+    tm_.assign(n, 0);
+    tm_[0] = d[0];
+    tm_[n - 1] = d[n - 2];
+    for (size_t i = 1; i + 1 < n; ++i) tm_[i] = d[i - 1] * d[i] <= 0 ? 0 : 2 / (1 / d[i - 1] + 1 / d[i]);
+  }
+  for (int s : coil.sectors)
+    if (s < 1 || s > symmetry)
+      throw Error(ExitCode::data, where + ": sector " + std::to_string(s) + " outside 1.." + std::to_string(symmetry));
+}
+
+void TrimCoilField::shape(double r_m, double& s, double& ds) const {
+  s = ds = 0;
+  const double rmin = coil_.rmin_mm * 1e-3, rmax = coil_.rmax_mm * 1e-3;
+  if (kind_ == 2) {
+    // OPAL's PSI-BFIELD-MIRRORED (TC15): x measured from the nearer end, in units of 1/slope,
+    // 2.78 normalizes the peak; applied at every radius (physics.md).
+    const double r_mm = r_m * 1e3, mid = 0.5 * (coil_.rmin_mm + coil_.rmax_mm);
+    const double sl = coil_.slope_per_mm;
+    const double x = r_mm < mid ? (r_mm - coil_.rmin_mm) * sl : (coil_.rmax_mm - r_mm) * sl;
+    const double dx_dr = (r_mm < mid ? sl : -sl) * 1e3;  // per metre
+    const double ln10 = std::log(10.0);
+    const double p1 = std::pow(10.0, 0.03 * (x - 4)), p2 = std::pow(10.0, -0.2 * (x - 8));
+    s = (-3 + 3 / (1 + p1) + 5 / (1 + p2)) / 2.78;
+    const double dp1 = p1 * ln10 * 0.03, dp2 = p2 * ln10 * -0.2;
+    ds = (-3 * dp1 / ((1 + p1) * (1 + p1)) - 5 * dp2 / ((1 + p2) * (1 + p2))) / 2.78 * dx_dr;
+    return;
+  }
+  if (r_m < rmin || r_m > rmax) return;
+  if (kind_ == 3) {
+    if (r_m < tr_.front() || r_m > tr_.back()) return;
+    size_t i = static_cast<size_t>(std::upper_bound(tr_.begin(), tr_.end(), r_m) - tr_.begin());
+    i = std::min(std::max<size_t>(i, 1), tr_.size() - 1) - 1;
+    const double h = tr_[i + 1] - tr_[i], t = (r_m - tr_[i]) / h;
+    const double h00 = (1 + 2 * t) * (1 - t) * (1 - t), h10 = t * (1 - t) * (1 - t), h01 = t * t * (3 - 2 * t),
+                 h11 = t * t * (t - 1);
+    s = h00 * ts_[i] + h10 * h * tm_[i] + h01 * ts_[i + 1] + h11 * h * tm_[i + 1];
+    const double d00 = 6 * t * t - 6 * t, d10 = 3 * t * t - 4 * t + 1, d01 = -6 * t * t + 6 * t, d11 = 3 * t * t - 2 * t;
+    ds = (d00 * ts_[i] + d01 * ts_[i + 1]) / h + d10 * tm_[i] + d11 * tm_[i + 1];
+    return;
+  }
+  double q, dq, d2q;
+  rational(coil_.coefnum, coil_.coefdenom, r_m, q, dq, d2q);
+  if (kind_ == 0) {
+    s = q;
+    ds = dq;
+  } else {  // psi-phase: the field follows -d(phase)/dr (paper Eq. 5)
+    s = -dq;
+    ds = -d2q;
+  }
+}
+
+bool TrimCoilField::in_azimuth(double th) const {
+  const double two_pi = 2 * kPi;
+  auto wrap = [&](double a) { return a - two_pi * std::floor(a / two_pi); };
+  th = wrap(th);
+  if (!(coil_.phimin_deg == 0 && coil_.phimax_deg >= 360)) {
+    const double a = wrap(coil_.phimin_deg * kPi / 180), b = wrap(coil_.phimax_deg * kPi / 180);
+    const bool inside = a <= b ? (th >= a && th <= b) : (th >= a || th <= b);
+    if (!inside && coil_.phimax_deg - coil_.phimin_deg < 360) return false;
+  }
+  if (coil_.sectors.empty()) return true;
+  // Sector k is centred on azimuth (k - 1) 360/N deg (theta = 0 is the centre of sector 1).
+  const double width = two_pi / symmetry_;
+  const int k = static_cast<int>(std::floor(wrap(th + 0.5 * width) / width)) % symmetry_ + 1;
+  return std::find(coil_.sectors.begin(), coil_.sectors.end(), k) != coil_.sectors.end();
+}
+
+void TrimCoilField::add(double r_m, double th, double main_b, double main_db_dr, double main_db_dth,
+                        double threshold_T, double& b, double& db_dr, double& db_dth) const {
+  if (coil_.bmax_T == 0 || !in_azimuth(th)) return;
+  double s, ds;
+  shape(r_m, s, ds);
+  if (s == 0 && ds == 0) return;
+  // Below the threshold the coil fades linearly with the main field (OPAL's smooth transition).
+  double w = 1, dw_dr = 0, dw_dth = 0;
+  const double amain = std::fabs(main_b);
+  if (threshold_T > 0 && amain < threshold_T) {
+    w = amain / threshold_T;
+    const double sg = main_b >= 0 ? 1.0 : -1.0;
+    dw_dr = sg * main_db_dr / threshold_T;
+    dw_dth = sg * main_db_dth / threshold_T;
+  }
+  const double bm = coil_.bmax_T;
+  b += bm * s * w;
+  db_dr += bm * (ds * w + s * dw_dr);
+  db_dth += bm * s * dw_dth;
+}
+
+}  // namespace turnfit
