@@ -1,0 +1,124 @@
+// Tracking: conservation laws, analytic limits and the OPAL anchors of the PSI Ring run.
+#include <catch2/catch.hpp>
+#include <cmath>
+
+#include "../support.hpp"
+#include "turnfit/physics/particle.hpp"
+#include "turnfit/track/tracker.hpp"
+
+using namespace turnfit;
+
+namespace {
+TrackModel uniform_model(double B) {
+  PolarGrid g;
+  g.r_min_mm = 200;
+  g.dr_mm = 20;
+  g.nr = 191;
+  g.ntheta = 90;
+  g.symmetry = 4;
+  TrackModel m;
+  m.map = make_field_map(g, [&](double, double) { return B; }, "uniform");
+  m.rf_MHz = 10;
+  m.harmonic = 1;
+  return m;
+}
+std::string aeo_machine() { return std::string(TURNFIT_TEST_DIR) + "/../examples/psi-ring/aeo.json"; }
+}  // namespace
+
+TEST_CASE("track: static uniform field - circles, energy kept, time of flight", "[track]") {
+  const double B = 1.0, E = 100;
+  TrackModel m = uniform_model(B);
+  ProbeLine p;
+  p.name = "X";
+  p.s_min_m = 0.2;
+  p.s_max_m = 4;
+  m.probes.push_back(p);
+  Injection inj;
+  inj.energy_MeV = E;
+  const Kinematics k = kinematics(938.27208816, 1, E);
+  inj.r_mm = k.brho_Tm / B * 1e3;
+  inj.phi_deg = 45;
+  for (std::string integ : {"azimuth", "rk4"}) {
+    TrackSettings st;
+    st.integrator = integ;
+    st.turns = 200;
+    st.steps_per_turn = 2880;  // RK4 in time does not conserve |p| exactly: 1e-10 needs this many
+    std::vector<TurnRecord> turns;
+    m.rf_MHz = 1e-6 / (2 * kPi * k.gamma * 938.27208816e6 / (kSpeedOfLight * kSpeedOfLight * B));  // f_rev
+    TrackEnd end = track_particle(m, injection_state(inj, 938.27208816), st, turns);
+    INFO(integ);
+    REQUIRE_FALSE(end.lost);
+    CHECK(end.energy_MeV == Approx(E).epsilon(1e-10));
+    REQUIRE(turns.size() == 200);
+    for (const auto& t : turns) CHECK(t.r_mm == Approx(inj.r_mm).margin(integ == "rk4" ? 1e-3 : 1e-7));
+    const double t_rev = 2 * kPi * k.gamma * 938.27208816e6 / (kSpeedOfLight * kSpeedOfLight * B);
+    CHECK((turns[199].t_ns - turns[0].t_ns) * 1e-9 == Approx(199 * t_rev).epsilon(1e-9));
+  }
+}
+
+TEST_CASE("track: a particle leaving the map is a reported loss", "[track]") {
+  TrackModel m = uniform_model(1.0);
+  Injection inj;
+  inj.energy_MeV = 100;
+  inj.r_mm = 3900;  // the orbit circle leaves the map (r <= 4000 mm) on the far side
+  inj.pr_betagamma = 0.2;
+  std::vector<TurnRecord> turns;
+  TrackSettings st;
+  TrackEnd end = track_particle(m, injection_state(inj, 938.27208816), st, turns);
+  CHECK(end.lost);
+  CHECK_THAT(end.status, Catch::Matchers::Contains("lost"));
+  CHECK(std::isfinite(end.r_mm));
+}
+
+TEST_CASE("track: PSI Ring run matches OPAL's convention anchors (physics.md)", "[track][shared]") {
+  TURNFIT_REQUIRE_SHARED(path, "data/psi-ring/bfield.dat");
+  Machine mach = load_machine(aeo_machine());
+  TrackModel m = make_track_model(mach);
+  TrackSettings st;
+  st.turns = 190;
+  std::vector<TurnRecord> turns;
+  std::vector<KickRecord> kicks;
+  TrackEnd end = track_particle(m, injection_state(*mach.injection, mach.particle.mass_MeV), st, turns, &kicks);
+  REQUIRE_FALSE(end.lost);
+  REQUIRE(kicks.size() >= 3);
+  // First Rf1 (main2 here) near -4.955 deg, T = 0.9695, +0.4637 MeV; then Rf3 (main3) near
+  // -3.64 deg, +0.4677 MeV; then the flat-top near 164.5 deg, T = 0.8206, -0.1255 MeV.
+  CHECK(m.gaps[kicks[0].gap].name() == "main2");
+  CHECK(kicks[0].kick.phase_deg == Approx(-4.955).margin(0.05));
+  CHECK(kicks[0].kick.transit == Approx(0.9695).margin(1e-4));
+  CHECK(kicks[0].kick.de_MeV == Approx(0.4637).margin(5e-4));
+  CHECK(m.gaps[kicks[1].gap].name() == "main3");
+  CHECK(kicks[1].kick.de_MeV == Approx(0.4677).margin(5e-4));
+  CHECK(m.gaps[kicks[2].gap].name() == "ft");
+  CHECK(kicks[2].kick.phase_deg == Approx(164.5).margin(0.1));
+  CHECK(kicks[2].kick.transit == Approx(0.8206).margin(1e-4));
+  CHECK(kicks[2].kick.de_MeV == Approx(-0.1255).margin(5e-4));
+  // At azimuth 0: turn 1 at 2144.41 mm, 73.275 MeV, 82.34 ns; turn 2 at 2165.53 mm, 75.035 MeV;
+  // turn 190 at 4402.80 mm, 590.53 MeV (OPAL, bilinear map). Bicubic interpolation moves radii by
+  // up to 1.75 mm and the final energy by -0.23 MeV (physics.md), hence the margins.
+  REQUIRE(turns.size() == 190);
+  CHECK(turns[0].r_mm == Approx(2144.41).margin(0.5));
+  CHECK(turns[0].energy_MeV == Approx(73.275).margin(0.005));
+  CHECK(turns[0].t_ns == Approx(82.34).margin(0.05));
+  CHECK(turns[1].r_mm == Approx(2165.53).margin(0.5));
+  CHECK(turns[1].energy_MeV == Approx(75.035).margin(0.005));
+  CHECK(turns[189].r_mm == Approx(4402.80).margin(2.5));
+  CHECK(turns[189].energy_MeV == Approx(590.53).margin(0.5));
+}
+
+TEST_CASE("track: the azimuth scheme agrees with RK4 at 23040 steps per turn", "[track][shared][slow]") {
+  TURNFIT_REQUIRE_SHARED(path, "data/psi-ring/bfield.dat");
+  Machine mach = load_machine(aeo_machine());
+  TrackModel m = make_track_model(mach);
+  const ParticleState s0 = injection_state(*mach.injection, mach.particle.mass_MeV);
+  TrackSettings fast, ref;
+  ref.integrator = "rk4";
+  ref.steps_per_turn = 23040;
+  std::vector<TurnRecord> a, b;
+  track_particle(m, s0, fast, a);
+  track_particle(m, s0, ref, b);
+  REQUIRE(a.size() == b.size());
+  double worst = 0;
+  for (size_t i = 0; i < a.size(); ++i) worst = std::max(worst, std::fabs(a[i].r_mm - b[i].r_mm));
+  CHECK(worst < 0.05);
+}
