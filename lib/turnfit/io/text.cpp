@@ -10,6 +10,7 @@
 #include <fstream>
 #include <iostream>
 #include <sstream>
+#include <sys/stat.h>
 
 #include "turnfit/io/error.hpp"
 
@@ -26,6 +27,8 @@ InputText read_input(const std::string& path) {
     return in;
   }
   in.name = path;
+  struct stat st {};
+  if (::stat(path.c_str(), &st) == 0 && S_ISDIR(st.st_mode)) throw open_error(path, "is a directory");
   std::ifstream f(path, std::ios::binary);
   if (!f) throw open_error(path, std::strerror(errno));
   std::ostringstream ss;

@@ -113,6 +113,19 @@ std::string unknown_dvar(const Machine& m, const std::string& name) {
   }
   std::string msg = "unknown design variable '" + name + "'";
   if (!best.empty()) msg += " (did you mean '" + best + "'?)";
+  // The paper's names exist only where the machine has the element they act on.
+  static const std::pair<const char*, const char*> needs[] = {
+      {"benergy", "an injection block"}, {"prinit", "an injection block"}, {"rinit", "an injection block"},
+      {"phiinit", "an injection block"}, {"vmaincav", "cavities main1..main4"}, {"vchange", "cavities main1..main4"},
+      {"phimain", "cavities main1..main4"}, {"pdismain", "cavities main1..main4"},
+      {"rmainshift", "cavities main1..main4"}, {"vftcav", "a cavity named ft"}, {"phift", "a cavity named ft"},
+      {"phirfft", "a cavity named ft"}, {"pdisft", "a cavity named ft"}, {"rftshift", "a cavity named ft"},
+      {"rri2", "a probe named RRI2"}, {"rrl", "a probe named RRL"}, {"tc", "trim coils named TC1..TC16"}};
+  for (const auto& [prefix, what] : needs)
+    if (name.rfind(prefix, 0) == 0 && best.empty()) {
+      msg += " (one of the paper's design variables; it needs " + std::string(what) + " in the machine)";
+      break;
+    }
   return msg;
 }
 
