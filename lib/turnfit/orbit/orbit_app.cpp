@@ -101,9 +101,10 @@ void write_orbit_text(std::ostream& os, const std::vector<OrbitRow>& rows) {
   char buf[256];
   os << "  E [MeV]     r [mm]  pr [mrad]     nu_r     nu_z  f_rev [MHz]  slip [deg/turn]  status\n";
   for (const auto& r : rows) {
+    char slip[32] = "-";
+    if (std::isfinite(r.phase_slip_deg)) std::snprintf(slip, sizeof slip, "%.4f", r.phase_slip_deg);
     std::snprintf(buf, sizeof buf, "%9.3f %10.3f %10.4f %8.5f %8.5f %12.6f %16s  %s\n", r.energy_MeV, r.r_mm,
-                  r.pr_mrad, r.nu_r, r.nu_z, r.f_rev_MHz,
-                  std::isfinite(r.phase_slip_deg) ? cli::fmt(r.phase_slip_deg, 5).c_str() : "-", r.status.c_str());
+                  r.pr_mrad, r.nu_r, r.nu_z, r.f_rev_MHz, slip, r.status.c_str());
     os << buf;
   }
 }
