@@ -13,6 +13,7 @@ namespace {
 
 const char* const kTools[][2] = {
     {"orbit", "equilibrium orbits, tunes and isochronism of a field map"},
+    {"track", "accelerated orbits: where each turn crosses each probe"},
 };
 
 void usage(std::ostream& os) {

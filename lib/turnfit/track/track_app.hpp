@@ -1,0 +1,40 @@
+// turnfit-track as a library function: options, run, turns.csv output.
+#pragma once
+
+#include <CLI/CLI.hpp>
+#include <ostream>
+#include <string>
+#include <vector>
+
+#include "turnfit/cli/common.hpp"
+#include "turnfit/track/tracker.hpp"
+
+namespace turnfit {
+
+/// Everything turnfit-track is asked to do.
+struct TrackOptions {
+  cli::CommonOptions common;
+  std::string machine;
+  std::vector<std::string> sets;
+  std::string dvars;
+  std::string integrator;     ///< empty: machine's tracking.integrator, else "azimuth"
+  int steps_per_turn = 0;     ///< rk4 (0: machine's, else 2880)
+  int steps_per_cell = 1;     ///< azimuth
+  double turns = 0;           ///< 0: machine's tracking.turns
+  bool list_integrators = false;
+  std::string kicks;          ///< --kicks FILE: every gap crossing as CSV
+  bool opal_deflection = false;  ///< OPAL 2022.1's RF deflection (divided by 2 pi)
+};
+
+/// Registers turnfit-track's options.
+void add_track_options(CLI::App& app, TrackOptions& o);
+
+/// Runs turnfit-track; returns the exit code.
+int run_track(const TrackOptions& o);
+
+/// Writes probe crossings as turns.csv (architecture.md columns), ending with a '#' line per
+/// particle that says how its track ended.
+void write_turns_csv(std::ostream& os, const TrackModel& model, const std::vector<TurnRecord>& turns,
+                     const std::vector<TrackEnd>& ends, bool provenance);
+
+}  // namespace turnfit
