@@ -109,3 +109,31 @@ TEST_CASE("io: outputs appear only when committed", "[io]") {
   std::remove(path.c_str());
   ::rmdir(dir.c_str());
 }
+
+TEST_CASE("io: devices are written in place and links are followed", "[io]") {
+  {
+    OutputFile out("/dev/null");
+    out.stream() << "discarded\n";
+    out.commit();
+  }
+  struct stat st {};
+  REQUIRE(::stat("/dev/null", &st) == 0);
+  CHECK(S_ISCHR(st.st_mode));
+  const std::string dir = temp_dir();
+  const std::string target = dir + "/target.csv", link = dir + "/link.csv";
+  REQUIRE(::symlink("target.csv", link.c_str()) == 0);
+  {
+    OutputFile out(link);
+    out.stream() << "x\n";
+    out.commit();
+  }
+  REQUIRE(::lstat(link.c_str(), &st) == 0);
+  CHECK(S_ISLNK(st.st_mode));
+  std::ifstream f(target);
+  std::string line;
+  std::getline(f, line);
+  CHECK(line == "x");
+  std::remove(link.c_str());
+  std::remove(target.c_str());
+  ::rmdir(dir.c_str());
+}

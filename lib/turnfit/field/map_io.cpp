@@ -1,6 +1,7 @@
 // Field map readers and writers; strict, so a truncated or garbled map is an error.
 #include "turnfit/field/map_io.hpp"
 
+#include <algorithm>
 #include <cmath>
 #include <cstdio>
 #include <sstream>
@@ -42,20 +43,22 @@ PolarFieldMap parse_psi_ring(const std::string& text, const std::string& name, i
   };
   // Header: r_min [mm], dr [mm], theta_min [deg], dtheta [deg] (negative: 1/|value| deg).
   double head[4];
+  long head_line[4];
   const char* what[4] = {"r_min_mm", "dr_mm", "theta_min_deg", "dtheta"};
   for (int k = 0; k < 4; ++k) {
     long l = next_nonblank();
     if (l < 0) throw data_error(name, static_cast<long>(lines.size()), "truncated header: missing " + std::string(what[k]));
     auto f = split_blanks(lines[li]);
+    head_line[k] = l + 1;
     head[k] = parse_double(f.empty() ? std::string_view() : f[0], name, l + 1, what[k]);
     ++li;
   }
+  // OPAL's convention for both steps: a negative value means 1/|value|.
+  if (head[1] < 0) head[1] = 1.0 / -head[1];
   if (head[3] < 0) head[3] = 1.0 / -head[3];
-  if (head[3] == 0) head[3] = 0;
-  const long dr_line = 2;
-  if (!(head[1] > 0)) throw data_error(name, dr_line, "radial step must be positive");
-  if (!(head[3] > 0)) throw data_error(name, 4, "azimuthal step must be non-zero");
-  if (head[0] < 0) throw data_error(name, 1, "minimum radius must not be negative");
+  if (!(head[1] > 0)) throw data_error(name, head_line[1], "radial step must be non-zero");
+  if (!(head[3] > 0)) throw data_error(name, head_line[3], "azimuthal step must be non-zero");
+  if (head[0] < 0) throw data_error(name, head_line[0], "minimum radius must not be negative");
 
   // First LPAR block: integers; the 2nd and 3rd are the radius and azimuth counts.
   long lpar_line = -1;
@@ -78,9 +81,9 @@ PolarFieldMap parse_psi_ring(const std::string& text, const std::string& name, i
   if (nr < 2 || nr > 100000 || nt < 1 || nt > 100000)
     throw data_error(name, lpar_line + 2, "implausible grid size " + std::to_string(nr) + " x " +
                                               std::to_string(nt));
-  int sym = symmetry_from_grid(static_cast<int>(nt), head[3], name, 4);
+  int sym = symmetry_from_grid(static_cast<int>(nt), head[3], name, head_line[3]);
   if (symmetry > 0 && symmetry != sym)
-    throw data_error(name, 4, "grid covers 360/" + std::to_string(sym) +
+    throw data_error(name, head_line[3], "grid covers 360/" + std::to_string(sym) +
                                   " deg but symmetry " + std::to_string(symmetry) + " was requested");
 
   // Records "LREC= n ... IREC= k", each followed by n fixed-width (16 character) numbers,
@@ -160,6 +163,7 @@ PolarFieldMap parse_turnfit_map(const std::string& text, const std::string& name
   double r_min_mm = NAN, dr_mm = NAN, theta_min_deg = 0;
   long nr = -1, nt = -1, sym = -1;
   std::string unit, label;
+  std::vector<std::string> seen;
   for (;; ++li) {
     skip();
     if (li >= lines.size()) throw data_error(name, static_cast<long>(lines.size()), "truncated: no 'data' line");
@@ -171,6 +175,9 @@ PolarFieldMap parse_turnfit_map(const std::string& text, const std::string& name
     }
     size_t sp = l.find_first_of(" \t");
     std::string key(l.substr(0, sp));
+    if (std::find(seen.begin(), seen.end(), key) != seen.end())
+      throw data_error(name, ln, "header key '" + key + "' given twice");
+    seen.push_back(key);
     std::string_view val = sp == std::string_view::npos ? std::string_view() : trim(l.substr(sp));
     if (key == "label") label = std::string(val);
     else if (key == "symmetry") sym = parse_long(val, name, ln, key);

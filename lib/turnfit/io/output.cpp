@@ -17,7 +17,30 @@ namespace turnfit {
 
 OutputFile::OutputFile(const std::string& path) : path_(path.empty() ? "-" : path) {
   if (path_ == "-") return;
-  std::vector<char> name(path_.begin(), path_.end());
+  // A device or a FIFO (/dev/null, a named pipe) is written in place: renaming over it would
+  // replace it with a regular file. A symbolic link is followed, so the link stays a link.
+  std::string target = path_;
+  struct stat st {};
+  for (int hops = 0; hops < 16 && ::lstat(target.c_str(), &st) == 0 && S_ISLNK(st.st_mode); ++hops) {
+    std::vector<char> buf(4096);
+    const ssize_t n = ::readlink(target.c_str(), buf.data(), buf.size() - 1);
+    if (n <= 0) break;
+    std::string next(buf.data(), static_cast<size_t>(n));
+    if (next.front() != '/') {  // relative to the link's folder
+      const auto slash = target.rfind('/');
+      if (slash != std::string::npos) next = target.substr(0, slash + 1) + next;
+    }
+    target = next;
+  }
+  if (::stat(target.c_str(), &st) == 0 && !S_ISREG(st.st_mode)) {
+    if (S_ISDIR(st.st_mode)) throw Error(ExitCode::cant_create, path_ + ": cannot create: is a directory");
+    file_ = std::make_unique<std::ofstream>(target, std::ios::binary);
+    if (!*file_) throw Error(ExitCode::cant_create, path_ + ": cannot open: " + std::strerror(errno));
+    direct_ = true;
+    return;
+  }
+  final_ = target;
+  std::vector<char> name(target.begin(), target.end());
   const char suffix[] = ".tmp.XXXXXX";
   name.insert(name.end(), suffix, suffix + sizeof suffix);  // includes the NUL
   int fd = ::mkstemp(name.data());
@@ -52,11 +75,15 @@ void OutputFile::commit() {
   bool ok = static_cast<bool>(*file_);
   file_->close();
   if (!ok || file_->fail()) throw Error(ExitCode::io, path_ + ": write error");
+  if (direct_) {
+    committed_ = true;
+    return;
+  }
   // Keep the usual permissions of a new file (mkstemp makes it 0600).
   mode_t mask = ::umask(0);
   ::umask(mask);
   ::chmod(tmp_.c_str(), 0666 & ~mask);
-  if (std::rename(tmp_.c_str(), path_.c_str()) != 0)
+  if (std::rename(tmp_.c_str(), final_.c_str()) != 0)
     throw Error(ExitCode::cant_create, path_ + ": cannot rename into place: " + std::strerror(errno));
   committed_ = true;
 }

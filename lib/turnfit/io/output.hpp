@@ -11,7 +11,8 @@ namespace turnfit {
 /// An output that is either stdout ("-" or empty path) or a file written atomically:
 /// data goes to a temporary file in the same folder, renamed to the final path by
 /// commit(). Destroyed without commit(), it removes the temporary, so an interrupted
-/// or failed run never leaves a half-written result.
+/// or failed run never leaves a half-written result. Devices and FIFOs are written in place;
+/// symbolic links are followed.
 class OutputFile {
  public:
   /// Opens the output (EX_CANTCREAT if the temporary cannot be created).
@@ -29,7 +30,9 @@ class OutputFile {
 
  private:
   std::string path_;
+  std::string final_;  ///< where the temporary is renamed to (a symlink's target)
   std::string tmp_;
+  bool direct_ = false;  ///< writing straight into a device or FIFO
   std::unique_ptr<std::ofstream> file_;
   bool committed_ = false;
 };

@@ -199,7 +199,7 @@ OrbitRow solve_orbit(const PolarFieldMap& map, const OrbitSettings& s, double en
   std::string unstable;
   if (std::isnan(row.nu_r)) unstable = "radial";
   if (std::isnan(row.nu_z)) unstable += unstable.empty() ? "vertical" : " and vertical";
-  if (!unstable.empty()) row.status = "unstable " + unstable + " motion (|trace/2| >= 1)";
+  if (!unstable.empty()) row.status = "unstable " + unstable + " motion (|trace/2| > 1)";
   return row;
 }
 
@@ -220,7 +220,8 @@ OrbitRow closed_orbit(const PolarFieldMap& map, const OrbitSettings& s, double e
   const double r_avg = average_field_radius(map, sign * kin.brho_Tm);
   OrbitRow row;
   if (std::isnan(r_avg)) {
-    row = solve_orbit(map, s, energy_MeV, kNaN, kNaN);
+    row.energy_MeV = energy_MeV;
+    row.r_mm = row.pr_mrad = row.nu_r = row.nu_z = row.f_rev_MHz = row.phase_slip_deg = row.r_avg_mm = kNaN;
     row.status = "no closed orbit: Brho = " + cli_text(kin.brho_Tm) + " T m is beyond r <Bz> of the map between r = " +
                  mm_text(g.r_min_m()) + " and " + mm_text(g.r_max_m()) + " mm" +
                  (sign * map.average(g.nr / 2) < 0 ? " (the field bends the other way: flip its sign)" : "");

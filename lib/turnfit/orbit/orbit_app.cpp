@@ -48,11 +48,11 @@ void add_orbit_options(CLI::App& app, OrbitOptions& o) {
   app.add_option("--field-format", o.field_format, "Field map format")
       ->check(CLI::IsMember({"psi-ring", "turnfit"}))
       ->capture_default_str();
-  app.add_option("--symmetry", o.symmetry, "Number of sectors (0: from the map)")->check(CLI::NonNegativeNumber);
+  app.add_option("--symmetry", o.symmetry, "Sector count --field-map must have (0: whatever it has; a mismatch is an error)")
+      ->check(CLI::NonNegativeNumber);
   app.add_option("--field-scale", o.field_scale, "Multiply the map by this factor (-1 flips polarity)")
       ->capture_default_str();
-  app.add_option("--particle", o.particle, "proton, deuteron or alpha (without a machine file)")
-      ->capture_default_str();
+  app.add_option("--particle", o.particle, "proton (default), deuteron or alpha; a machine file names its own");
   app.add_option("--energies", o.energies, "Kinetic energies [MeV]: FIRST:LAST:STEP or E1,E2,...");
   app.add_option("--harmonic", o.harmonic, "RF harmonic number h (for the phase slip)")->check(CLI::PositiveNumber);
   app.add_option("--rf-MHz", o.rf_MHz, "RF frequency [MHz] (for the phase slip)")->check(CLI::PositiveNumber);
@@ -60,7 +60,8 @@ void add_orbit_options(CLI::App& app, OrbitOptions& o) {
   app.add_option("--steps-per-cell", o.steps_per_cell, "RK4 steps per azimuthal map cell")
       ->check(CLI::Range(1, 1000))
       ->capture_default_str();
-  app.add_option("--set", o.sets, "Set a design variable or JSON pointer of the machine: NAME=VALUE");
+  app.add_option("--set", o.sets, "Set a design variable or JSON pointer of the machine: NAME=VALUE (repeatable)")
+      ->allow_extra_args(false);
   app.add_option("--dvars", o.dvars, "JSON file of design-variable values");
   app.add_option("--write-map", o.write_map, "Also write the loaded (scaled) map to this file");
   app.add_option("--write-map-format", o.write_map_format, "Format for --write-map")
@@ -98,15 +99,17 @@ void write_orbit_json(std::ostream& os, const std::vector<OrbitRow>& rows, bool 
 }
 
 void write_orbit_text(std::ostream& os, const std::vector<OrbitRow>& rows) {
-  char buf[256];
+  auto col = [](double v, int width, int prec) {
+    char b[48];
+    if (std::isfinite(v)) std::snprintf(b, sizeof b, "%*.*f", width, prec, v);
+    else std::snprintf(b, sizeof b, "%*s", width, "-");
+    return std::string(b);
+  };
   os << "  E [MeV]     r [mm]  pr [mrad]     nu_r     nu_z  f_rev [MHz]  slip [deg/turn]  status\n";
-  for (const auto& r : rows) {
-    char slip[32] = "-";
-    if (std::isfinite(r.phase_slip_deg)) std::snprintf(slip, sizeof slip, "%.4f", r.phase_slip_deg);
-    std::snprintf(buf, sizeof buf, "%9.3f %10.3f %10.4f %8.5f %8.5f %12.6f %16s  %s\n", r.energy_MeV, r.r_mm,
-                  r.pr_mrad, r.nu_r, r.nu_z, r.f_rev_MHz, slip, r.status.c_str());
-    os << buf;
-  }
+  for (const auto& r : rows)
+    os << col(r.energy_MeV, 9, 3) << ' ' << col(r.r_mm, 10, 3) << ' ' << col(r.pr_mrad, 10, 4) << ' '
+       << col(r.nu_r, 8, 5) << ' ' << col(r.nu_z, 8, 5) << ' ' << col(r.f_rev_MHz, 12, 6) << ' '
+       << col(r.phase_slip_deg, 16, 4) << "  " << r.status << '\n';
 }
 }  // namespace
 
@@ -132,6 +135,13 @@ OrbitJob prepare_orbit(const OrbitOptions& o) {
   if (o.machine == "-" && (o.field_map == "-" || o.dvars == "-")) throw usage_error("only one input can be stdin");
   if (!(o.field_scale != 0) || !std::isfinite(o.field_scale)) throw usage_error("--field-scale must be non-zero");
   if (o.energies.empty() && o.write_map.empty()) throw usage_error("--energies is required (unless only --write-map)");
+  if (!o.machine.empty() && !o.particle.empty())
+    throw usage_error("--particle conflicts with a machine file: the machine names its particle");
+  if (o.symmetry > 0 && o.field_map.empty())
+    throw usage_error("--symmetry checks --field-map; a machine file sets field.symmetry");
+  if (!o.energies.empty() && (o.write_map == "-" || o.write_map == "/dev/stdout") &&
+      (o.common.output == "-" || o.common.output.empty()))
+    throw usage_error("--write-map - and the orbit table cannot both go to stdout (use -o)");
   OrbitJob job;
   if (!o.energies.empty()) job.energies = parse_energies(o.energies);
 
@@ -148,7 +158,7 @@ OrbitJob prepare_orbit(const OrbitOptions& o) {
     s.rf_MHz = m.rf.frequency_MHz;
     if (o.field_map.empty()) job.map = scaled(load_main_field(m), o.field_scale);
   } else {
-    Particle p = particle_named(o.particle);
+    Particle p = particle_named(o.particle.empty() ? "proton" : o.particle);
     s.mass_MeV = p.mass_MeV;
     s.charge_e = p.charge_e;
   }

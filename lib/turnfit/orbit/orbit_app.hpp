@@ -21,7 +21,7 @@ struct OrbitOptions {
   std::string field_format = "psi-ring";
   int symmetry = 0;
   double field_scale = 1.0;
-  std::string particle = "proton";
+  std::string particle;                ///< empty: proton (without a machine file)
   std::string energies;                ///< --energies spec
   int harmonic = 0;                    ///< 0: machine's or none
   double rf_MHz = 0;                   ///< 0: machine's or none
