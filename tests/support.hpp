@@ -2,8 +2,11 @@
 #pragma once
 
 #include <cstdlib>
+#include <functional>
 #include <string>
 #include <sys/stat.h>
+
+#include "turnfit/io/error.hpp"
 
 namespace turnfit::test {
 
@@ -23,6 +26,17 @@ inline std::string shared_file(const std::string& rel) {
 /// A file in tests/data.
 inline std::string test_file(const std::string& rel) {
   return std::string(TURNFIT_TEST_DIR) + "/data/" + rel;
+}
+
+/// Runs f; the exit code of the turnfit::Error it throws (0 if none), its message in *msg.
+inline int error_code(const std::function<void()>& f, std::string* msg = nullptr) {
+  try {
+    f();
+  } catch (const Error& e) {
+    if (msg) *msg = e.what();
+    return static_cast<int>(e.code());
+  }
+  return 0;
 }
 
 }  // namespace turnfit::test

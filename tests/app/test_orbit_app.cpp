@@ -35,15 +35,6 @@ std::string write_test_map() {
   return tmpl;
 }
 
-int code_of(const std::function<void()>& f, std::string* msg = nullptr) {
-  try {
-    f();
-  } catch (const Error& e) {
-    if (msg) *msg = e.what();
-    return static_cast<int>(e.code());
-  }
-  return 0;
-}
 }  // namespace
 
 TEST_CASE("app: orbit table from a map file as CSV", "[app]") {
@@ -95,22 +86,22 @@ TEST_CASE("app: JSON and text formats carry the same rows", "[app]") {
 TEST_CASE("app: option errors are usage errors", "[app]") {
   OrbitOptions o;
   std::string msg;
-  CHECK(code_of([&] { prepare_orbit(o); }, &msg) == 64);
+  CHECK(turnfit::test::error_code([&] { prepare_orbit(o); }, &msg) == 64);
   CHECK_THAT(msg, Contains("machine file or --field-map"));
   o.field_map = "/no/such/map.dat";
-  CHECK(code_of([&] { prepare_orbit(o); }, &msg) == 64);  // energies missing
+  CHECK(turnfit::test::error_code([&] { prepare_orbit(o); }, &msg) == 64);  // energies missing
   o.energies = "72";
-  CHECK(code_of([&] { prepare_orbit(o); }, &msg) == 66);
+  CHECK(turnfit::test::error_code([&] { prepare_orbit(o); }, &msg) == 66);
   CHECK_THAT(msg, Contains("/no/such/map.dat"));
   o.sets = {"vmaincav1=0.8"};
-  CHECK(code_of([&] { prepare_orbit(o); }, &msg) == 64);
+  CHECK(turnfit::test::error_code([&] { prepare_orbit(o); }, &msg) == 64);
   CHECK_THAT(msg, Contains("machine file"));
   o.sets.clear();
   o.harmonic = 6;  // without --rf-MHz
   const std::string map = write_test_map();
   o.field_map = map;
   o.field_format = "turnfit";
-  CHECK(code_of([&] { prepare_orbit(o); }, &msg) == 64);
+  CHECK(turnfit::test::error_code([&] { prepare_orbit(o); }, &msg) == 64);
   std::remove(map.c_str());
 }
 

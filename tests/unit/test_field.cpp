@@ -24,15 +24,6 @@ PolarGrid small_grid(int symmetry = 4, int nr = 21, int nt = 36) {
   return g;
 }
 
-int error_code(const std::function<void()>& f, std::string* msg = nullptr) {
-  try {
-    f();
-  } catch (const Error& e) {
-    if (msg) *msg = e.what();
-    return static_cast<int>(e.code());
-  }
-  return 0;
-}
 }  // namespace
 
 TEST_CASE("field: spline reproduces constants and cubics in r exactly", "[field]") {
@@ -115,11 +106,11 @@ TEST_CASE("field: N-fold symmetry and the radial range", "[field]") {
 TEST_CASE("field: invalid grids and values are rejected", "[field]") {
   PolarGrid g = small_grid();
   std::vector<double> v(static_cast<size_t>(g.nr) * g.ntheta, 1.0);
-  CHECK(error_code([&] { PolarFieldMap(g, std::vector<double>(10, 1.0)); }) == 65);
+  CHECK(turnfit::test::error_code([&] { PolarFieldMap(g, std::vector<double>(10, 1.0)); }) == 65);
   v[7] = std::nan("");
-  CHECK(error_code([&] { PolarFieldMap(g, v); }) == 65);
+  CHECK(turnfit::test::error_code([&] { PolarFieldMap(g, v); }) == 65);
   g.nr = 1;
-  CHECK(error_code([&] { PolarFieldMap(g, std::vector<double>(36, 1.0)); }) == 65);
+  CHECK(turnfit::test::error_code([&] { PolarFieldMap(g, std::vector<double>(36, 1.0)); }) == 65);
 }
 
 TEST_CASE("field: turnfit format round trip is bit-identical", "[field][io]") {
@@ -161,7 +152,7 @@ TEST_CASE("field: psi-ring reader errors name the file and line", "[field][io]")
   std::string msg;
 
   // Truncated in the middle of a record.
-  CHECK(error_code([&] { parse_psi_ring(good.substr(0, good.size() * 2 / 3), "cut.dat"); }, &msg) == 65);
+  CHECK(turnfit::test::error_code([&] { parse_psi_ring(good.substr(0, good.size() * 2 / 3), "cut.dat"); }, &msg) == 65);
   CHECK_THAT(msg, Contains("cut.dat") && Contains("truncated"));
 
   // A garbled number: the message names its line.
@@ -171,15 +162,15 @@ TEST_CASE("field: psi-ring reader errors name the file and line", "[field][io]")
   bad.replace(line_start, 16, "    0.1x000E+01");
   bad.insert(line_start, " ");
   long line = 1 + static_cast<long>(std::count(bad.begin(), bad.begin() + static_cast<long>(line_start), '\n'));
-  CHECK(error_code([&] { parse_psi_ring(bad, "bad.dat"); }, &msg) == 65);
+  CHECK(turnfit::test::error_code([&] { parse_psi_ring(bad, "bad.dat"); }, &msg) == 65);
   CHECK_THAT(msg, Contains("bad.dat:" + std::to_string(line) + ":"));
 
-  CHECK(error_code([&] { parse_psi_ring("", "empty.dat"); }, &msg) == 65);
-  CHECK(error_code([&] { parse_psi_ring("1900\n20\n0\n-3\nno blocks here\n", "x.dat"); }, &msg) == 65);
+  CHECK(turnfit::test::error_code([&] { parse_psi_ring("", "empty.dat"); }, &msg) == 65);
+  CHECK(turnfit::test::error_code([&] { parse_psi_ring("1900\n20\n0\n-3\nno blocks here\n", "x.dat"); }, &msg) == 65);
   CHECK_THAT(msg, Contains("LPAR"));
-  CHECK(error_code([&] { parse_psi_ring("1900\n-20\n0\n-3\n", "neg.dat"); }, &msg) == 65);
+  CHECK(turnfit::test::error_code([&] { parse_psi_ring("1900\n-20\n0\n-3\n", "neg.dat"); }, &msg) == 65);
   // A symmetry that contradicts the grid.
-  CHECK(error_code([&] { parse_psi_ring(good, "sym.dat", 8); }, &msg) == 65);
+  CHECK(turnfit::test::error_code([&] { parse_psi_ring(good, "sym.dat", 8); }, &msg) == 65);
   CHECK_THAT(msg, Contains("symmetry"));
 }
 
@@ -189,14 +180,14 @@ TEST_CASE("field: turnfit-format reader errors", "[field][io]") {
   CHECK_NOTHROW(parse_turnfit_map(head + "1 2 3\n4 5 6\n", "ok"));
   CHECK(parse_turnfit_map(head + "1 2 3\n4 5 6\n", "ok").value(1, 2) == 6);
   std::string msg;
-  CHECK(error_code([&] { parse_turnfit_map(head + "1 2 3\n", "short"); }, &msg) == 65);
+  CHECK(turnfit::test::error_code([&] { parse_turnfit_map(head + "1 2 3\n", "short"); }, &msg) == 65);
   CHECK_THAT(msg, Contains("truncated"));
-  CHECK(error_code([&] { parse_turnfit_map(head + "1 2 3\n4 5\n", "row"); }, &msg) == 65);
+  CHECK(turnfit::test::error_code([&] { parse_turnfit_map(head + "1 2 3\n4 5\n", "row"); }, &msg) == 65);
   CHECK_THAT(msg, Contains("row:11:"));
-  CHECK(error_code([&] { parse_turnfit_map(head + "1 2 3\n4 nan 6\n", "nan"); }, &msg) == 65);
+  CHECK(turnfit::test::error_code([&] { parse_turnfit_map(head + "1 2 3\n4 nan 6\n", "nan"); }, &msg) == 65);
   CHECK_THAT(msg, Contains("nan:11:"));
-  CHECK(error_code([&] { parse_turnfit_map("hello\n", "x"); }, &msg) == 65);
-  CHECK(error_code([&] { parse_turnfit_map("turnfit-fieldmap 1\nsymmetry 2\ncolour red\n", "key"); }, &msg) == 65);
+  CHECK(turnfit::test::error_code([&] { parse_turnfit_map("hello\n", "x"); }, &msg) == 65);
+  CHECK(turnfit::test::error_code([&] { parse_turnfit_map("turnfit-fieldmap 1\nsymmetry 2\ncolour red\n", "key"); }, &msg) == 65);
   CHECK_THAT(msg, Contains("key:3:") && Contains("colour"));
   std::string kg = head;
   kg.replace(kg.find("unit T"), 6, "unit kG");

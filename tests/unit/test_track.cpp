@@ -106,7 +106,7 @@ TEST_CASE("track: PSI Ring run matches OPAL's convention anchors (physics.md)", 
   CHECK(turns[189].energy_MeV == Approx(590.53).margin(0.5));
 }
 
-TEST_CASE("track: the azimuth scheme agrees with RK4 at 23040 steps per turn", "[track][shared][slow]") {
+TEST_CASE("track: the azimuth scheme agrees with RK4 at 23040 steps per turn", "[track][shared]") {
   TURNFIT_REQUIRE_SHARED(path, "data/psi-ring/bfield.dat");
   Machine mach = load_machine(aeo_machine());
   TrackModel m = make_track_model(mach);
