@@ -21,6 +21,14 @@ OutputFile::OutputFile(const std::string& path) : path_(path.empty() ? "-" : pat
   // replace it with a regular file. A symbolic link is followed, so the link stays a link.
   std::string target = path_;
   struct stat st {};
+  // Decide by what the path finally is (stat follows links: /dev/stdout may be a pipe).
+  if (::stat(path_.c_str(), &st) == 0 && !S_ISREG(st.st_mode)) {
+    if (S_ISDIR(st.st_mode)) throw Error(ExitCode::cant_create, path_ + ": cannot create: is a directory");
+    file_ = std::make_unique<std::ofstream>(path_, std::ios::binary | std::ios::app);
+    if (!*file_) throw Error(ExitCode::cant_create, path_ + ": cannot open: " + std::strerror(errno));
+    direct_ = true;
+    return;
+  }
   for (int hops = 0; hops < 16 && ::lstat(target.c_str(), &st) == 0 && S_ISLNK(st.st_mode); ++hops) {
     std::vector<char> buf(4096);
     const ssize_t n = ::readlink(target.c_str(), buf.data(), buf.size() - 1);
@@ -31,13 +39,6 @@ OutputFile::OutputFile(const std::string& path) : path_(path.empty() ? "-" : pat
       if (slash != std::string::npos) next = target.substr(0, slash + 1) + next;
     }
     target = next;
-  }
-  if (::stat(target.c_str(), &st) == 0 && !S_ISREG(st.st_mode)) {
-    if (S_ISDIR(st.st_mode)) throw Error(ExitCode::cant_create, path_ + ": cannot create: is a directory");
-    file_ = std::make_unique<std::ofstream>(target, std::ios::binary);
-    if (!*file_) throw Error(ExitCode::cant_create, path_ + ": cannot open: " + std::strerror(errno));
-    direct_ = true;
-    return;
   }
   final_ = target;
   std::vector<char> name(target.begin(), target.end());

@@ -47,10 +47,13 @@ double VoltageProfile::eval(double x, double& dv) const {
     dv = 0;
     return 1;
   }
-  if (x <= x_.front() || x >= x_.back()) {  // the ends: the end values
-    const size_t i = x <= x_.front() ? 0 : x_.size() - 1;
-    dv = d_[i];
-    return v_[i];
+  if (x < x_.front() || x > x_.back()) {  // beyond the table: held at the end value
+    dv = 0;
+    return x < x_.front() ? v_.front() : v_.back();
+  }
+  if (x == x_.back()) {
+    dv = d_.back();
+    return v_.back();
   }
   size_t i = static_cast<size_t>(std::upper_bound(x_.begin(), x_.end(), x) - x_.begin()) - 1;
   const double h = x_[i + 1] - x_[i], t = (x - x_[i]) / h;

@@ -183,6 +183,7 @@ TrackEnd track_azimuth(const TrackModel& m, const ParticleState& s0, const Track
       kr.kick = m.gaps[e.index].kick(r * cth, r * sth, y[4], mass, m.charge_e, st.gap_physics, px, py, pz);
       if (kr.kick.stopped) {
         f.lost_r = r;
+        if (kicks) kicks->push_back(kr);
         lose("stopped by gap '" + m.gaps[e.index].name() + "'");
         break;
       }
@@ -304,7 +305,8 @@ TrackEnd track_time(const TrackModel& m, const ParticleState& s0, const TrackSet
       const Gap& gp = m.gaps[gi];
       const double da = gp.distance(y0[0], y0[1]), db = gp.distance(y[0], y[1]);
       if (!(da > 0 && db <= 0)) continue;
-      // Only the half of the line inside the machine: rho = x cos A + y sin A > 0 there.
+      // The direction test (positive to negative distance) picks the crossing on the gap's
+      // own half of the line; the particle crosses the other half the other way.
       if (!f(y0, d0) || !f(y, d1)) break;
       double lo = 0, hi = 1;
       for (int it = 0; it < 60; ++it) {  // bisection on the Hermite path, then refine by RK4
@@ -330,6 +332,8 @@ TrackEnd track_time(const TrackModel& m, const ParticleState& s0, const TrackSet
       double px = yc[3], py = yc[4];
       kr.kick = gp.kick(yc[0], yc[1], tc, mass, m.charge_e, st.gap_physics, px, py, yc[5]);
       if (kr.kick.stopped) {
+        f.lost_r = std::hypot(yc[0], yc[1]);
+        if (kicks) kicks->push_back(kr);
         lose("stopped by gap '" + gp.name() + "'");
         break;
       }
