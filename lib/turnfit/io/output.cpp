@@ -22,7 +22,10 @@ OutputFile::OutputFile(const std::string& path) : path_(path.empty() ? "-" : pat
   std::string target = path_;
   struct stat st {};
   // Decide by what the path finally is (stat follows links: /dev/stdout may be a pipe).
-  if (::stat(path_.c_str(), &st) == 0 && !S_ISREG(st.st_mode)) {
+  // Descriptor aliases are written through, so a shell's ">>" keeps what the file held.
+  const bool fd_alias = path_.rfind("/dev/std", 0) == 0 || path_.rfind("/dev/fd/", 0) == 0 ||
+                        path_.rfind("/proc/self/fd/", 0) == 0;
+  if (::stat(path_.c_str(), &st) == 0 && (fd_alias || !S_ISREG(st.st_mode))) {
     if (S_ISDIR(st.st_mode)) throw Error(ExitCode::cant_create, path_ + ": cannot create: is a directory");
     file_ = std::make_unique<std::ofstream>(path_, std::ios::binary | std::ios::app);
     if (!*file_) throw Error(ExitCode::cant_create, path_ + ": cannot open: " + std::strerror(errno));
