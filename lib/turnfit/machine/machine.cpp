@@ -234,15 +234,7 @@ Particle read_particle(json& j, const std::string& file) {
   // A named species fixes mass and charge; a second source of truth would drift.
   for (const char* k : {"mass_MeV", "charge_e"})
     if (r.has(k)) throw r.error(k, "only allowed with species 'custom'");
-  if (p.species == "proton")
-    p.mass_MeV = kProtonMass, p.charge_e = 1;
-  else if (p.species == "deuteron")
-    p.mass_MeV = kDeuteronMass, p.charge_e = 1;
-  else if (p.species == "alpha")
-    p.mass_MeV = kAlphaMass, p.charge_e = 2;
-  else
-    p.mass_MeV = kH2PlusMass, p.charge_e = 1;
-  return p;
+  return *named_particle(p.species);
 }
 
 FieldSpec read_field(json& j, const std::string& file, const std::string& dir) {
@@ -635,6 +627,17 @@ void revalidate(Machine& m) {
   n.dvars = std::move(m.dvars);
   n.dvar_offsets = std::move(m.dvar_offsets);
   m = std::move(n);
+}
+
+std::optional<Particle> named_particle(const std::string& species) {
+  Particle p;
+  p.species = species;
+  if (species == "proton") p.mass_MeV = kProtonMass, p.charge_e = 1;
+  else if (species == "deuteron") p.mass_MeV = kDeuteronMass, p.charge_e = 1;
+  else if (species == "alpha") p.mass_MeV = kAlphaMass, p.charge_e = 2;
+  else if (species == "h2+") p.mass_MeV = kH2PlusMass, p.charge_e = 1;
+  else return std::nullopt;
+  return p;
 }
 
 }  // namespace turnfit

@@ -16,6 +16,10 @@ struct Particle {
   double charge_e = 1.0;           ///< charge in units of e (positive: bent as a proton)
 };
 
+/// The named species' particle (CODATA 2018 masses): proton, deuteron, alpha, h2+; nullopt for
+/// any other name ("custom" included: it has no fixed mass).
+std::optional<Particle> named_particle(const std::string& species);
+
 /// The main (sector magnet) field.
 struct FieldSpec {
   std::string map;                     ///< path of the map, resolved against the machine file

@@ -12,6 +12,7 @@
 
 #include "turnfit/io/error.hpp"
 #include "turnfit/io/text.hpp"
+#include "turnfit/physics/azimuth_eom.hpp"
 #include "turnfit/physics/particle.hpp"
 
 namespace turnfit {
@@ -37,18 +38,17 @@ struct SectorRhs {
       lost_r = r;
       return false;
     }
-    const double s2 = 1 - x * x;
-    if (!(s2 > 0)) {
+    AzimuthDerivs d;
+    if (!azimuth_eom(r, x, 0, 0, f, inv_brho, inv_v, d)) {  // the orbit lies in the midplane
       lost_r = r;
       return false;
     }
-    const double s = std::sqrt(s2);
-    const double b = f.bz_T * inv_brho, br = f.dbz_dr_T_m * inv_brho, bt = f.dbz_dth_T * inv_brho;
-    dy[0] = r * x / s;
-    dy[1] = s - r * b;
-    dy[2] = r * inv_v / s;
+    const double s = d.s, b = d.b, br = d.br, bt = d.bt;
+    dy[0] = d.dr;
+    dy[1] = d.dx;
+    dy[2] = d.dt;
     // Radial Jacobian d(dr, dx)/d(r, x).
-    const double j00 = x / s, j01 = r / (s2 * s), j10 = -(b + r * br), j11 = -x / s;
+    const double j00 = x / s, j01 = r / (s * s * s), j10 = -(b + r * br), j11 = -x / s;
     dy[3] = j00 * y[3] + j01 * y[5];
     dy[4] = j00 * y[4] + j01 * y[6];
     dy[5] = j10 * y[3] + j11 * y[5];

@@ -16,19 +16,8 @@ namespace {
 std::string cell(double v, int digits) { return std::isfinite(v) ? cli::fmt(v, digits) : std::string(); }
 
 Particle particle_named(const std::string& name) {
-  Particle p;
-  p.species = name;
-  if (name == "proton") return p;
-  if (name == "deuteron") {
-    p.mass_MeV = 1875.61294257;
-    return p;
-  }
-  if (name == "alpha") {
-    p.mass_MeV = 3727.3794066;
-    p.charge_e = 2;
-    return p;
-  }
-  throw usage_error("--particle '" + name + "': expected proton, deuteron or alpha (or a machine file)");
+  if (auto p = named_particle(name)) return *p;
+  throw usage_error("--particle '" + name + "': expected proton, deuteron, alpha or h2+ (or a machine file)");
 }
 
 void progress_bar(size_t done, size_t total) {
@@ -52,7 +41,7 @@ void add_orbit_options(CLI::App& app, OrbitOptions& o) {
       ->check(CLI::NonNegativeNumber);
   app.add_option("--field-scale", o.field_scale, "Multiply the map by this factor (-1 flips polarity)")
       ->capture_default_str();
-  app.add_option("--particle", o.particle, "proton (default), deuteron or alpha; a machine file names its own");
+  app.add_option("--particle", o.particle, "proton (default), deuteron, alpha or h2+; a machine file names its own");
   app.add_option("--energies", o.energies, "Kinetic energies [MeV]: FIRST:LAST:STEP or E1,E2,...");
   app.add_option("--harmonic", o.harmonic, "RF harmonic number h (for the phase slip)")->check(CLI::PositiveNumber);
   app.add_option("--rf-MHz", o.rf_MHz, "RF frequency [MHz] (for the phase slip)")->check(CLI::PositiveNumber);

@@ -6,6 +6,7 @@
 
 #include "turnfit/io/error.hpp"
 #include "turnfit/io/text.hpp"
+#include "turnfit/physics/hermite.hpp"
 #include "turnfit/physics/particle.hpp"
 
 namespace turnfit {
@@ -56,12 +57,8 @@ double VoltageProfile::eval(double x, double& dv) const {
     return v_.back();
   }
   size_t i = static_cast<size_t>(std::upper_bound(x_.begin(), x_.end(), x) - x_.begin()) - 1;
-  const double h = x_[i + 1] - x_[i], t = (x - x_[i]) / h;
-  const double h00 = (1 + 2 * t) * (1 - t) * (1 - t), h10 = t * (1 - t) * (1 - t), h01 = t * t * (3 - 2 * t),
-               h11 = t * t * (t - 1);
-  const double d00 = 6 * t * t - 6 * t, d10 = 3 * t * t - 4 * t + 1, d01 = -6 * t * t + 6 * t, d11 = 3 * t * t - 2 * t;
-  dv = (d00 * v_[i] + d01 * v_[i + 1]) / h + d10 * d_[i] + d11 * d_[i + 1];
-  return h00 * v_[i] + h10 * h * d_[i] + h01 * v_[i + 1] + h11 * h * d_[i + 1];
+  const double h = x_[i + 1] - x_[i];
+  return hermite(v_[i], v_[i + 1], d_[i], d_[i + 1], h, (x - x_[i]) / h, dv);
 }
 
 Gap::Gap(const Cavity& c, double rf_MHz, VoltageProfile profile)

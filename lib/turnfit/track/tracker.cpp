@@ -7,6 +7,8 @@
 #include <cstdio>
 #include <limits>
 
+#include "turnfit/physics/azimuth_eom.hpp"
+#include "turnfit/physics/hermite.hpp"
 #include "turnfit/physics/particle.hpp"
 
 namespace turnfit {
@@ -33,9 +35,8 @@ double next_after(double th, double after) {
 double nearest(double th, double ref) { return th + kTwoPi * std::round((ref - th) / kTwoPi); }
 
 // ---------------------------------------------------------------------------------------------
-// Azimuth integrator. State: r [m], x = p_r/p, z [m], xz = p_z/p, t [s]; p constant between gaps.
-// Equations (physics.md, azimuth as independent variable) with physical Bz = -b, first order
-// off the midplane: Br = -z db/dr, Btheta = -(z/r) db/dtheta.
+// Azimuth integrator. State: r [m], x = p_r/p, z [m], xz = p_z/p, t [s]; p constant between gaps;
+// equations in physics/azimuth_eom.hpp.
 using AzState = std::array<double, 5>;
 
 struct AzRhs {
@@ -50,18 +51,12 @@ struct AzRhs {
       lost_r = r;
       return false;
     }
-    const double s2 = 1 - x * x - xz * xz;
-    if (!(s2 > 0)) {
+    AzimuthDerivs d;
+    if (!azimuth_eom(r, x, z, xz, f, inv_brho, inv_v, d)) {
       lost_r = r;
       return false;
     }
-    const double s = std::sqrt(s2);
-    const double b = f.bz_T * inv_brho, br = f.dbz_dr_T_m * inv_brho, bt = f.dbz_dth_T * inv_brho;
-    dy[0] = r * x / s;
-    dy[1] = s - r * b + (xz / s) * z * bt;
-    dy[2] = r * xz / s;
-    dy[3] = z * (r * br - (x / s) * bt);
-    dy[4] = r * inv_v / s;
+    dy = {d.dr, d.dx, d.dz, d.dxz, d.dt};
     return true;
   }
 };
@@ -264,14 +259,27 @@ bool rk4_t(TimeRhs& f, double h, TState& y) {
   return true;
 }
 
-/// Cubic Hermite interpolation of position between two step states (positions and velocities
-/// at both ends) at fraction u of the step of length h.
+/// Position at fraction u of a step of length h, on the cubic Hermite path through the step's
+/// end states (positions and velocities).
 void hermite_pos(const TState& a, const TState& da, const TState& b, const TState& db, double h, double u,
                  double& x, double& y) {
-  const double h00 = (1 + 2 * u) * (1 - u) * (1 - u), h10 = u * (1 - u) * (1 - u), h01 = u * u * (3 - 2 * u),
-               h11 = u * u * (u - 1);
-  x = h00 * a[0] + h10 * h * da[0] + h01 * b[0] + h11 * h * db[0];
-  y = h00 * a[1] + h10 * h * da[1] + h01 * b[1] + h11 * h * db[1];
+  double unused;
+  x = hermite(a[0], b[0], da[0], db[0], h, u, unused);
+  y = hermite(a[1], b[1], da[1], db[1], h, u, unused);
+}
+
+/// Fraction of the step where a line with signed distance `dist(x, y)` (positive before it) is
+/// crossed, by bisection on the Hermite path (O(h^4) accurate).
+template <class Dist>
+double crossing_fraction(const TState& a, const TState& da, const TState& b, const TState& db, double h, Dist dist) {
+  double lo = 0, hi = 1;
+  for (int it = 0; it < 60; ++it) {
+    const double mid = 0.5 * (lo + hi);
+    double xm, ym;
+    hermite_pos(a, da, b, db, h, mid, xm, ym);
+    (dist(xm, ym) > 0 ? lo : hi) = mid;
+  }
+  return 0.5 * (lo + hi);
 }
 
 TrackEnd track_time(const TrackModel& m, const ParticleState& s0, const TrackSettings& st,
@@ -308,17 +316,10 @@ TrackEnd track_time(const TrackModel& m, const ParticleState& s0, const TrackSet
       // The direction test (positive to negative distance) picks the crossing on the gap's
       // own half of the line; the particle crosses the other half the other way.
       if (!f(y0, d0) || !f(y, d1)) break;
-      double lo = 0, hi = 1;
-      for (int it = 0; it < 60; ++it) {  // bisection on the Hermite path, then refine by RK4
-        const double mid = 0.5 * (lo + hi);
-        double xm, ym;
-        hermite_pos(y0, d0, y, d1, dt, mid, xm, ym);
-        (gp.distance(xm, ym) > 0 ? lo : hi) = mid;
-      }
       // The Hermite path locates the crossing to O(dt^4); a partial RK4 step from the start
       // of the step then puts the particle there (physics.md: exact gap time, not OPAL's
       // straight-line estimate).
-      const double u = 0.5 * (lo + hi);
+      const double u = crossing_fraction(y0, d0, y, d1, dt, [&](double x, double yy) { return gp.distance(x, yy); });
       TState yc = y0;
       if (!rk4_t(f, u * dt, yc)) {
         lose("left the field map");
@@ -357,14 +358,7 @@ TrackEnd track_time(const TrackModel& m, const ParticleState& s0, const TrackSet
       if (!(da > 0 && db <= 0)) continue;
       if (pl.along(y[0], y[1]) < 0) continue;  // the other half of the line
       if (!f(y0, d0) || !f(y, d1)) break;
-      double lo = 0, hi = 1;
-      for (int it = 0; it < 60; ++it) {
-        const double mid = 0.5 * (lo + hi);
-        double xm, ym;
-        hermite_pos(y0, d0, y, d1, dt, mid, xm, ym);
-        (pl.distance(xm, ym) > 0 ? lo : hi) = mid;
-      }
-      const double u = 0.5 * (lo + hi);
+      const double u = crossing_fraction(y0, d0, y, d1, dt, [&](double x, double yy) { return pl.distance(x, yy); });
       double xc, yc;
       hermite_pos(y0, d0, y, d1, dt, u, xc, yc);
       ++probe_count[pi];

@@ -6,6 +6,7 @@
 
 #include "turnfit/io/csv.hpp"
 #include "turnfit/io/error.hpp"
+#include "turnfit/physics/hermite.hpp"
 
 namespace turnfit {
 namespace {
@@ -96,12 +97,8 @@ void TrimCoilField::shape(double r_m, double& s, double& ds) const {
     if (r_m < tr_.front() || r_m > tr_.back()) return;
     size_t i = static_cast<size_t>(std::upper_bound(tr_.begin(), tr_.end(), r_m) - tr_.begin());
     i = std::min(std::max<size_t>(i, 1), tr_.size() - 1) - 1;
-    const double h = tr_[i + 1] - tr_[i], t = (r_m - tr_[i]) / h;
-    const double h00 = (1 + 2 * t) * (1 - t) * (1 - t), h10 = t * (1 - t) * (1 - t), h01 = t * t * (3 - 2 * t),
-                 h11 = t * t * (t - 1);
-    s = h00 * ts_[i] + h10 * h * tm_[i] + h01 * ts_[i + 1] + h11 * h * tm_[i + 1];
-    const double d00 = 6 * t * t - 6 * t, d10 = 3 * t * t - 4 * t + 1, d01 = -6 * t * t + 6 * t, d11 = 3 * t * t - 2 * t;
-    ds = (d00 * ts_[i] + d01 * ts_[i + 1]) / h + d10 * tm_[i] + d11 * tm_[i + 1];
+    const double h = tr_[i + 1] - tr_[i];
+    s = hermite(ts_[i], ts_[i + 1], tm_[i], tm_[i + 1], h, (r_m - tr_[i]) / h, ds);
     return;
   }
   double q, dq, d2q;
