@@ -1,0 +1,33 @@
+// Internals shared by the integrators (not installed API).
+#pragma once
+
+#include <cmath>
+#include <cstdio>
+#include <limits>
+#include <string>
+#include <vector>
+
+#include "turnfit/physics/particle.hpp"
+#include "turnfit/track/tracker.hpp"
+
+namespace turnfit::detail {
+
+constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
+constexpr double kTwoPi = 2 * kPi;
+
+/// printf-style formatting of up to three numbers, for loss messages.
+inline std::string fmt(const char* f, double a, double b = 0, double c = 0) {
+  char buf[160];
+  std::snprintf(buf, sizeof buf, f, a, b, c);
+  return buf;
+}
+
+/// RK4 in azimuth on the map grid (the default integrator).
+TrackEnd track_azimuth(const TrackModel& m, const ParticleState& s0, const TrackSettings& st,
+                       std::vector<TurnRecord>& turns, std::vector<KickRecord>* kicks);
+
+/// RK4 in time with a fixed number of steps per turn (OPAL-cycl's scheme).
+TrackEnd track_time(const TrackModel& m, const ParticleState& s0, const TrackSettings& st,
+                    std::vector<TurnRecord>& turns, std::vector<KickRecord>* kicks);
+
+}  // namespace turnfit::detail
