@@ -125,8 +125,7 @@ bool PolarFieldMap::sample(double r_m, double theta_rad, FieldSample& out) const
   const double u = x - i;
   double y = (theta_rad - theta_min_) * inv_dth_;
   const double nt = grid_.ntheta;
-  y = std::fmod(y, nt);
-  if (y < 0) y += nt;
+  if (y < 0 || y >= nt) y -= nt * std::floor(y / nt);  // periodic in theta (cheaper than fmod)
   int j = static_cast<int>(y);
   if (j >= grid_.ntheta) j = grid_.ntheta - 1;  // y rounded up to nt
   const double v = y - j;

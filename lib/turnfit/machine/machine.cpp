@@ -395,12 +395,15 @@ Injection read_injection(json& j, const std::string& file) {
 }
 
 Tracking read_tracking(json& j, const std::string& file) {
-  Reader r(j, file, "/tracking", {"integrator", "steps_per_turn", "turns"});
+  Reader r(j, file, "/tracking", {"integrator", "steps_per_turn", "step_deg", "turns"});
   Tracking t;
   t.integrator = r.string("integrator", std::string());
   t.steps_per_turn = r.integer("steps_per_turn", 0);
   if (t.steps_per_turn < 0)
     throw r.error("steps_per_turn", "must be >= 0, got " + num(t.steps_per_turn));
+  t.step_deg = r.number("step_deg", 0.0);
+  if (t.step_deg < 0 || t.step_deg > 45)
+    throw r.error("step_deg", "must be in [0, 45] (0: the default), got " + num(t.step_deg));
   t.turns = r.integer("turns", 0);
   if (t.turns < 0) throw r.error("turns", "must be >= 0, got " + num(t.turns));
   return t;

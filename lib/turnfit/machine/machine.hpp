@@ -94,6 +94,7 @@ struct Injection {
 struct Tracking {
   std::string integrator;   ///< empty: the tool's default
   int steps_per_turn = 0;   ///< 0: the integrator's default
+  double step_deg = 0;      ///< azimuth integrator's largest step [deg]; 0: its default
   int turns = 0;            ///< 0: until extraction or loss
 };
 

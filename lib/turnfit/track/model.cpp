@@ -14,7 +14,8 @@ double ProbeLine::crossing_azimuth(double r_m) const {
 }
 
 bool TrackModel::field(double r_m, double th, FieldSample& out) const {
-  if (!map.sample(r_m, th, out)) return false;
+  // One branch per sample keeps the spline path free of indirect calls.
+  if (!(opal_map ? opal_map->sample(r_m, th, out) : map.sample(r_m, th, out))) return false;
   if (coils.empty()) return true;
   const FieldSample main = out;
   for (const auto& c : coils)
@@ -22,9 +23,10 @@ bool TrackModel::field(double r_m, double th, FieldSample& out) const {
   return true;
 }
 
-TrackModel make_track_model(const Machine& m) {
+TrackModel make_track_model(const Machine& m, const ModelOptions& opt) {
   TrackModel t;
   t.map = load_main_field(m);
+  if (opt.opal_map) t.opal_map.emplace(t.map);
   const int sym = t.map.grid().symmetry;
   for (const auto& c : m.trimcoils) t.coils.emplace_back(c, sym);
   t.threshold_T = m.field.trimcoil_threshold_T;

@@ -1,10 +1,12 @@
 // Everything a tracker needs from a machine: total magnetic field, gaps, probes, particle.
 #pragma once
 
+#include <optional>
 #include <string>
 #include <vector>
 
 #include "turnfit/field/field_map.hpp"
+#include "turnfit/field/opal_map.hpp"
 #include "turnfit/machine/machine.hpp"
 #include "turnfit/rf/cavity.hpp"
 #include "turnfit/trimcoil/trimcoil.hpp"
@@ -29,6 +31,9 @@ struct ProbeLine {
 /// The machine as trackers see it.
 struct TrackModel {
   PolarFieldMap map;                 ///< main field (already scaled)
+  /// If set, the main field is sampled as OPAL-cycl does (bilinear, from `map`'s grid values)
+  /// instead of by `map`'s spline.
+  std::optional<OpalBilinearMap> opal_map;
   std::vector<TrimCoilField> coils;  ///< trim coils
   double threshold_T = 0;            ///< trim coil threshold
   std::vector<Gap> gaps;
@@ -43,7 +48,14 @@ struct TrackModel {
   bool field(double r_m, double theta_rad, FieldSample& out) const;
 };
 
+/// How the model is built.
+struct ModelOptions {
+  /// OPAL-cycl 2022.1's field: bilinear interpolation in (r, theta) of Bz, with dBz/dr and
+  /// dBz/dtheta from 5-point stencils (one-sided at the edges), instead of the bicubic spline.
+  bool opal_map = false;
+};
+
 /// Builds the model of a machine: reads the map, the cavity profiles and trim coil tables.
-TrackModel make_track_model(const Machine& m);
+TrackModel make_track_model(const Machine& m, const ModelOptions& opt = {});
 
 }  // namespace turnfit

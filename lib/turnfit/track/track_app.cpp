@@ -23,9 +23,9 @@ void add_track_options(CLI::App& app, TrackOptions& o) {
       ->check(CLI::IsMember({"azimuth", "rk4"}));
   app.add_option("--steps-per-turn", o.steps_per_turn, "rk4: time steps per turn (default 2880)")
       ->check(CLI::Range(16, 10000000));
-  app.add_option("--steps-per-cell", o.steps_per_cell, "azimuth: steps per azimuthal map cell")
-      ->check(CLI::Range(1, 1000))
-      ->capture_default_str();
+  app.add_option("--step-deg", o.step_deg,
+                 "azimuth: largest step in degrees, rounded to whole map cells (default 1)")
+      ->check(CLI::Range(1e-4, 45.0));
   app.add_option("--turns", o.turns, "Revolutions to track (default: the machine's tracking.turns)")
       ->check(CLI::Range(0.0, 1e6));
   app.add_flag("--list-integrators", o.list_integrators, "List the integrators and exit");
@@ -86,7 +86,7 @@ int run_track(const TrackOptions& o) {
     throw data_error(m.path, 0, "/tracking/steps_per_turn: " + std::to_string(st.steps_per_turn) + " is too few (at least 16)");
   if (!o.kicks.empty() && (o.kicks == "-") && (o.common.output == "-" || o.common.output.empty()))
     throw usage_error("--kicks - and the turns table cannot both go to stdout (use -o)");
-  st.steps_per_cell = o.steps_per_cell;
+  st.step_deg = o.step_deg > 0 ? o.step_deg : m.tracking.step_deg;
   st.turns = o.turns > 0 ? o.turns : m.tracking.turns > 0 ? m.tracking.turns : 0;
   if (!(st.turns > 0)) throw usage_error("no turn count: give --turns or tracking.turns in the machine");
   if (st.integrator == "rk4" && !(model.rf_MHz > 0))

@@ -19,7 +19,7 @@ struct TrackOptions {
   std::string dvars;
   std::string integrator;     ///< empty: machine's tracking.integrator, else "azimuth"
   int steps_per_turn = 0;     ///< rk4 (0: machine's, else 2880)
-  int steps_per_cell = 1;     ///< azimuth
+  double step_deg = 0;        ///< azimuth: largest step (0: machine's, else kDefaultStepDeg)
   double turns = 0;           ///< 0: machine's tracking.turns
   bool list_integrators = false;
   std::string kicks;          ///< --kicks FILE: every gap crossing as CSV

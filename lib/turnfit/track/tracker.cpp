@@ -9,16 +9,18 @@
 namespace turnfit {
 
 std::vector<std::pair<std::string, std::string>> list_integrators() {
-  return {{"azimuth", "RK4 in azimuth, steps aligned with the field map grid, exact gap and probe crossings (default)"},
+  return {{"azimuth", "5th-order Runge-Kutta in azimuth, steps of whole map cells (--step-deg), exact gap and probe crossings (default)"},
           {"rk4", "RK4 in time with --steps-per-turn fixed steps (OPAL-cycl's scheme), crossings interpolated"}};
 }
 
-ParticleState injection_state(const Injection& inj, double mass_MeV) {
+ParticleState injection_state(const Injection& inj, double mass_MeV, bool opal_single_precision) {
   ParticleState s;
   const double gamma = 1 + inj.energy_MeV / mass_MeV;
   const double P = std::sqrt(gamma * gamma - 1);
   const double pr = inj.pr_betagamma, pz = inj.pz_betagamma;
-  const double pt = std::sqrt(std::max(0.0, P * P - pr * pr - pz * pz));
+  const double pt2 = std::max(0.0, P * P - pr * pr - pz * pz);
+  // OPAL keeps the radicand in a float and so takes the float square root (physics.md).
+  const double pt = opal_single_precision ? static_cast<double>(std::sqrt(static_cast<float>(pt2))) : std::sqrt(pt2);
   const double th = inj.phi_deg * kPi / 180, r = inj.r_mm * 1e-3;
   s.x = r * std::cos(th);
   s.y = r * std::sin(th);

@@ -48,16 +48,26 @@ struct TrackEnd {
   double t_ns = 0;
 };
 
+/// Default largest azimuth step [deg]: 3 cells of the PSI Ring map (1/3 deg), where the
+/// fifth-order scheme stays within 0.005 mm of RK4 at 23040 steps/turn over 190 turns (4 cells:
+/// 0.05 mm near the map edge; bench/RESULTS.md).
+constexpr double kDefaultStepDeg = 1.0;
+
 /// Tracking settings.
 struct TrackSettings {
-  /// "azimuth": RK4 in azimuth with steps aligned to the field map's grid, exact gap and probe
-  /// crossings (the default); "rk4": RK4 in time with a fixed number of steps per turn (OPAL's
+  /// "azimuth": fifth-order Runge-Kutta (Dormand-Prince) in azimuth with steps aligned to the
+  /// field map's grid, exact gap and probe crossings (the default); "rk4": RK4 in time with a fixed number of steps per turn (OPAL's
   /// scheme) and crossings interpolated between steps.
   std::string integrator = "azimuth";
   int steps_per_turn = 0;  ///< rk4: steps per RF period times h (default 2880)
-  int steps_per_cell = 1;  ///< azimuth: steps per map cell
+  /// azimuth: largest step [deg]; steps are whole multiples (or whole fractions) of the map's
+  /// azimuthal cell, so every step starts and ends on grid lines. 0: kDefaultStepDeg.
+  double step_deg = 0;
   double turns = 190;      ///< revolutions to track
   GapPhysics gap_physics = GapPhysics::turnfit;
+  /// rk4 only: OPAL-cycl 2022.1's gap handling (straight-line gap-time estimate, no gap test in
+  /// the step after a kick) and its single-precision p_theta at injection.
+  bool opal_compat = false;
 };
 
 /// Names and one-line descriptions of the integrators.
@@ -65,7 +75,9 @@ std::vector<std::pair<std::string, std::string>> list_integrators();
 
 /// The injection state of a machine (OPAL's convention: total momentum from the energy,
 /// p_r given, p_theta along increasing azimuth, rotated to the injection azimuth).
-ParticleState injection_state(const Injection& inj, double mass_MeV);
+/// opal_single_precision: p_theta as OPAL-cycl 2022.1 computes it, the square root of
+/// P^2 - p_r^2 - p_z^2 rounded to float and taken in float (a 1e-4 mm effect on the orbit).
+ParticleState injection_state(const Injection& inj, double mass_MeV, bool opal_single_precision = false);
 
 /// Kinetic energy [MeV] of a state.
 double kinetic_energy(const ParticleState& s, double mass_MeV);

@@ -70,6 +70,7 @@ TrimCoilField::TrimCoilField(const TrimCoil& coil, int symmetry) : coil_(coil), 
     tm_[n - 1] = d[n - 2];
     for (size_t i = 1; i + 1 < n; ++i) tm_[i] = d[i - 1] * d[i] <= 0 ? 0 : 2 / (1 / d[i - 1] + 1 / d[i]);
   }
+  everywhere_ = coil.sectors.empty() && coil.phimin_deg == 0 && coil.phimax_deg >= 360;
   for (int s : coil.sectors)
     if (s < 1 || s > symmetry)
       throw Error(ExitCode::data, where + ": sector " + std::to_string(s) + " outside 1.." + std::to_string(symmetry));
@@ -85,11 +86,14 @@ void TrimCoilField::shape(double r_m, double& s, double& ds) const {
     const double sl = coil_.slope_per_mm;
     const double x = r_mm < mid ? (r_mm - coil_.rmin_mm) * sl : (coil_.rmax_mm - r_mm) * sl;
     const double dx_dr = (r_mm < mid ? sl : -sl) * 1e3;  // per metre
-    const double ln10 = std::log(10.0);
-    const double p1 = std::pow(10.0, 0.03 * (x - 4)), p2 = std::pow(10.0, -0.2 * (x - 8));
-    s = (-3 + 3 / (1 + p1) + 5 / (1 + p2)) / 2.78;
+    // 10^a as exp(a ln 10): the same function, without pow's general-exponent path (the
+    // tracker evaluates this four times per step).
+    constexpr double ln10 = 2.30258509299404568402;
+    const double p1 = std::exp(0.03 * ln10 * (x - 4)), p2 = std::exp(-0.2 * ln10 * (x - 8));
+    const double i1 = 1 / (1 + p1), i2 = 1 / (1 + p2);
+    s = (-3 + 3 * i1 + 5 * i2) / 2.78;
     const double dp1 = p1 * ln10 * 0.03, dp2 = p2 * ln10 * -0.2;
-    ds = (-3 * dp1 / ((1 + p1) * (1 + p1)) - 5 * dp2 / ((1 + p2) * (1 + p2))) / 2.78 * dx_dr;
+    ds = (-3 * dp1 * i1 * i1 - 5 * dp2 * i2 * i2) / 2.78 * dx_dr;
     return;
   }
   if (r_m < rmin || r_m > rmax) return;
@@ -113,6 +117,7 @@ void TrimCoilField::shape(double r_m, double& s, double& ds) const {
 }
 
 bool TrimCoilField::in_azimuth(double th) const {
+  if (everywhere_) return true;
   const double two_pi = 2 * kPi;
   auto wrap = [&](double a) { return a - two_pi * std::floor(a / two_pi); };
   th = wrap(th);

@@ -38,6 +38,7 @@ class TrimCoilField {
   TrimCoil coil_;
   int symmetry_;
   int kind_;  // 0 bfield, 1 phase, 2 mirrored, 3 table
+  bool everywhere_ = false;  // full circle, all sectors: skip the azimuth test
   std::vector<double> tr_, ts_, tm_;  // table radii [m], shape values, Hermite slopes
 };
 
