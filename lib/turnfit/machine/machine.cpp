@@ -394,6 +394,35 @@ Injection read_injection(json& j, const std::string& file) {
   return in;
 }
 
+Bunch read_bunch(json& j, const std::string& file, const std::string& dir) {
+  Reader r(j, file, "/bunch",
+           {"particles", "emittance_r_mm_mrad", "beta_r_m", "alpha_r", "emittance_z_mm_mrad", "beta_z_m",
+            "alpha_z", "sigma_E_MeV", "sigma_phase_deg", "cutoff_sigma", "file"});
+  Bunch b;
+  b.particles = r.integer("particles", 0);
+  if (b.particles < 0) throw r.error("particles", "must be >= 0, got " + num(b.particles));
+  auto nonneg = [&](const char* key, double& v) {
+    v = r.number(key, 0.0);
+    if (v < 0) throw r.error(key, "must be >= 0, got " + num(v));
+  };
+  nonneg("emittance_r_mm_mrad", b.emittance_r_mm_mrad);
+  nonneg("beta_r_m", b.beta_r_m);
+  b.alpha_r = r.number("alpha_r", 0.0);
+  nonneg("emittance_z_mm_mrad", b.emittance_z_mm_mrad);
+  nonneg("beta_z_m", b.beta_z_m);
+  b.alpha_z = r.number("alpha_z", 0.0);
+  nonneg("sigma_E_MeV", b.sigma_E_MeV);
+  nonneg("sigma_phase_deg", b.sigma_phase_deg);
+  nonneg("cutoff_sigma", b.cutoff_sigma);
+  // An emittance needs its beta function: a sigma from the emittance alone would be a guess.
+  if (b.emittance_r_mm_mrad > 0 && !(b.beta_r_m > 0))
+    throw r.error("beta_r_m", "must be > 0 when emittance_r_mm_mrad is given");
+  if (b.emittance_z_mm_mrad > 0 && !(b.beta_z_m > 0))
+    throw r.error("beta_z_m", "must be > 0 when emittance_z_mm_mrad is given");
+  b.file = resolve_path(dir, r.string("file", std::string()));
+  return b;
+}
+
 Tracking read_tracking(json& j, const std::string& file) {
   Reader r(j, file, "/tracking", {"integrator", "steps_per_turn", "step_deg", "turns"});
   Tracking t;
@@ -557,7 +586,7 @@ Machine build(const json& input, const std::string& file, const std::string& dir
   json& doc = m.doc;
   Reader top(doc, file, "",
              {"format", "name", "description", "particle", "field", "rf", "cavities", "trimcoils",
-              "probes", "injection", "tracking", "effects", "dvars"});
+              "probes", "injection", "bunch", "tracking", "effects", "dvars"});
   std::string format = top.string("format");
   if (format != kFormat)
     throw top.error("format", "expected '" + std::string(kFormat) + "', got '" + format + "'");
@@ -588,6 +617,7 @@ Machine build(const json& input, const std::string& file, const std::string& dir
       m.probes.push_back(read_probe(a[i], file, "/probes/" + std::to_string(i), seen));
   }
   if (top.has("injection")) m.injection = read_injection(doc["injection"], file);
+  if (top.has("bunch")) m.bunch = read_bunch(doc["bunch"], file, dir);
   if (top.has("tracking")) m.tracking = read_tracking(doc["tracking"], file);
   if (top.has("effects")) m.effects = read_effects(doc["effects"], file);
   if (with_dvars) {

@@ -90,6 +90,23 @@ struct Injection {
   double t_ns = 0;          ///< start time (RF phase reference: t = 0)
 };
 
+/// A bunch around the injection point: a Gaussian in the six phase-space coordinates, or
+/// a file of offsets. Emittances are rms and geometric, in the Twiss form
+/// sigma = sqrt(emittance beta) (radial: dr and p_r/p; vertical: dz and p_z/p).
+struct Bunch {
+  int particles = 0;                 ///< default count for --particles (0: none given)
+  double emittance_r_mm_mrad = 0;    ///< rms, geometric
+  double beta_r_m = 0;
+  double alpha_r = 0;
+  double emittance_z_mm_mrad = 0;
+  double beta_z_m = 0;
+  double alpha_z = 0;
+  double sigma_E_MeV = 0;            ///< rms energy spread
+  double sigma_phase_deg = 0;        ///< rms RF phase width (a time spread at injection)
+  double cutoff_sigma = 3;           ///< truncation of each normal variate (0: none)
+  std::string file;                  ///< CSV of offsets (resolved path); overrides the Gaussian
+};
+
 /// Tracking settings.
 struct Tracking {
   std::string integrator;   ///< empty: the tool's default
@@ -126,6 +143,7 @@ struct Machine {
   std::vector<TrimCoil> trimcoils;
   std::vector<Probe> probes;
   std::optional<Injection> injection;
+  std::optional<Bunch> bunch;
   Tracking tracking;
   nlohmann::json effects = nlohmann::json::array();  ///< concealed/extra physics, validated by users
   std::map<std::string, DesignVariable> dvars;       ///< built-in and file-defined

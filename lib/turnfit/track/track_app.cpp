@@ -1,7 +1,10 @@
 // turnfit-track: where each turn crosses each probe, for one particle through a machine.
 #include "turnfit/track/track_app.hpp"
 
+#include <atomic>
 #include <cmath>
+#include <cstdio>
+#include <filesystem>
 #include <iostream>
 #include <memory>
 
@@ -32,7 +35,53 @@ void add_track_options(CLI::App& app, TrackOptions& o) {
   app.add_option("--kicks", o.kicks, "Also write every gap crossing (CSV) to this file");
   app.add_flag("--opal-deflection", o.opal_deflection,
                "RF magnetic deflection as OPAL 2022.1 computes it (2 pi smaller than Faraday's law)");
-  cli::add_common_options(app, o.common, cli::kOutput);
+  app.add_flag("--opal-compat", o.opal_compat,
+               "OPAL-cycl 2022.1's numerics: rk4 in time, bilinear map with 5-point derivatives, its gap\n"
+               "crossing estimate, kick and single-precision start (to check against an OPAL run)");
+  app.add_option("--particles", o.particles, "Track a bunch of N particles (default: the machine's bunch.particles)")
+      ->check(CLI::Range(0, 100000000));
+  app.add_option("--bunch", o.bunch, "Bunch from a CSV of offsets (dr_mm,dpr_mrad,dz_mm,dpz_mrad,dE_MeV,dphase_deg)");
+  app.add_option("--histograms", o.histograms, "Write a probe profile per probe (DIR/<probe>.csv) of the bunch");
+  cli::add_common_options(app, o.common, cli::kOutput | cli::kThreads | cli::kSeed);
+}
+
+void write_bunch_csv(std::ostream& os, const TrackModel& model, const BunchResult& res, bool provenance) {
+  if (provenance) os << cli::provenance_comment();
+  os << "probe,turn,r_mm,s_mm,t_ns,energy_MeV,phase_deg,particles,r_rms_mm\n";
+  char buf[320];
+  for (const auto& c : res.centroids) {
+    std::snprintf(buf, sizeof buf, "%s,%d,%.6f,%.6f,%.6f,%.8f,", model.probes[c.probe].name.c_str(), c.turn, c.r_mm,
+                  c.s_mm, c.t_ns, c.energy_MeV);
+    os << buf;
+    if (std::isfinite(c.phase_deg)) {
+      std::snprintf(buf, sizeof buf, "%.5f", c.phase_deg);
+      os << buf;
+    }
+    std::snprintf(buf, sizeof buf, ",%llu,%.6f\n", static_cast<unsigned long long>(c.particles), c.r_rms_mm);
+    os << buf;
+  }
+  for (const auto& [i, e] : res.lost) {
+    std::snprintf(buf, sizeof buf, "# end particle=%zu turns=%.4f energy_MeV=%.6f r_mm=%.4f t_ns=%.3f status=", i,
+                  e.turns, e.energy_MeV, e.r_mm, e.t_ns);
+    os << buf << e.status << "\n";
+  }
+  std::snprintf(buf, sizeof buf, "# bunch particles=%zu lost=%zu particle_turns=%.4f\n", res.particles,
+                res.lost.size(), res.particle_turns);
+  os << buf;
+}
+
+void write_profile_csv(std::ostream& os, const ProbeLine& probe, const ProbeHistogram& h, size_t particles,
+                       bool provenance) {
+  if (provenance) os << cli::provenance_comment();
+  char buf[256];
+  std::snprintf(buf, sizeof buf, "# probe=%s step_mm=%.6g particles=%zu outside=%llu\n", probe.name.c_str(),
+                h.step_mm, particles, static_cast<unsigned long long>(h.outside));
+  os << buf << "position_mm,intensity\n";
+  for (size_t k = 0; k < h.counts.size(); ++k) {
+    std::snprintf(buf, sizeof buf, "%.6f,%llu\n", h.lo_mm + (static_cast<double>(k) + 0.5) * h.step_mm,
+                  static_cast<unsigned long long>(h.counts[k]));
+    os << buf;
+  }
 }
 
 void write_turns_csv(std::ostream& os, const TrackModel& model, const std::vector<TurnRecord>& turns,
@@ -76,9 +125,15 @@ int run_track(const TrackOptions& o) {
                                       cli::fmt(P, 6) + " of " + cli::fmt(m.injection->energy_MeV) + " MeV");
   }
   if (m.probes.empty()) cli::warn(o.common, "the machine has no probes: turns.csv will have no rows");
-  TrackModel model = make_track_model(m);
+  if (o.opal_compat && !o.integrator.empty() && o.integrator != "rk4")
+    throw usage_error("--opal-compat tracks with the rk4 integrator: drop --integrator " + o.integrator);
+  ModelOptions mo;
+  mo.opal_map = o.opal_compat;
+  TrackModel model = make_track_model(m, mo);
   TrackSettings st;
-  st.integrator = !o.integrator.empty() ? o.integrator : !m.tracking.integrator.empty() ? m.tracking.integrator : "azimuth";
+  st.integrator = o.opal_compat ? "rk4"
+                  : !o.integrator.empty() ? o.integrator
+                  : !m.tracking.integrator.empty() ? m.tracking.integrator : "azimuth";
   if (st.integrator != "azimuth" && st.integrator != "rk4")
     throw data_error(m.path, 0, "/tracking/integrator: unknown integrator '" + st.integrator + "'");
   st.steps_per_turn = o.steps_per_turn > 0 ? o.steps_per_turn : m.tracking.steps_per_turn > 0 ? m.tracking.steps_per_turn : 2880;
@@ -91,13 +146,90 @@ int run_track(const TrackOptions& o) {
   if (!(st.turns > 0)) throw usage_error("no turn count: give --turns or tracking.turns in the machine");
   if (st.integrator == "rk4" && !(model.rf_MHz > 0))
     throw usage_error("the rk4 integrator needs an RF frequency (rf.frequency_MHz) for its time step");
-  st.gap_physics = o.opal_deflection ? GapPhysics::opal : GapPhysics::turnfit;
+  st.gap_physics = (o.opal_deflection || o.opal_compat) ? GapPhysics::opal : GapPhysics::turnfit;
+  st.opal_compat = o.opal_compat;
+  const ParticleState reference = injection_state(*m.injection, m.particle.mass_MeV, o.opal_compat);
+
+  // A bunch when asked for by count or file (here or in the machine); --particles 0 forces
+  // the single reference particle.
+  const int n = o.particles >= 0 ? o.particles : m.bunch ? m.bunch->particles : 0;
+  const std::string bfile = !o.bunch.empty() ? o.bunch : m.bunch ? m.bunch->file : std::string();
+  const bool bunch = n > 0 || (!bfile.empty() && o.particles != 0);
+  if (!bunch && !o.bunch.empty()) throw usage_error("--bunch with --particles 0: choose one");
+  if (bunch && !o.kicks.empty()) throw usage_error("--kicks records one particle: not with a bunch");
+
+  // Probe profile files, checked before the work so a bad name fails fast.
+  std::vector<std::string> hist_paths;
+  if (!o.histograms.empty()) {
+    for (const auto& p : model.probes) {
+      if (p.name.empty() || p.name.find('/') != std::string::npos || p.name == "." || p.name == "..")
+        throw data_error(m.path, 0, "/probes: probe name '" + p.name + "' cannot name a profile file");
+      hist_paths.push_back((std::filesystem::path(o.histograms) / (p.name + ".csv")).string());
+    }
+    std::error_code ec;
+    std::filesystem::create_directories(o.histograms, ec);
+    if (ec || !std::filesystem::is_directory(o.histograms))
+      throw Error(ExitCode::cant_create, o.histograms + ": cannot create the histogram folder" +
+                                           (ec ? " (" + ec.message() + ")" : std::string()));
+  }
+  std::vector<std::unique_ptr<OutputFile>> hist_out;
+  auto open_histograms = [&](const std::vector<ProbeHistogram>& hs, size_t particles) {
+    for (size_t p = 0; p < hist_paths.size(); ++p) {
+      hist_out.push_back(std::make_unique<OutputFile>(hist_paths[p]));
+      write_profile_csv(hist_out.back()->stream(), model.probes[p], hs[p], particles, !o.common.no_provenance);
+    }
+  };
+
+  if (bunch) {
+    std::vector<BunchOffset> offs;
+    if (!bfile.empty()) {
+      offs = read_bunch_file(bfile);
+      if (n > 0) {
+        if (static_cast<size_t>(n) > offs.size())
+          throw usage_error("--particles " + std::to_string(n) + ": " + bfile + " has only " +
+                            std::to_string(offs.size()) + " particles");
+        offs.resize(static_cast<size_t>(n));
+      }
+    } else {
+      if (!m.bunch)
+        throw data_error(m.path, 0, "/bunch: a bunch needs a distribution: the machine's bunch block "
+                                    "(emittances, sigma_E_MeV, sigma_phase_deg) or --bunch FILE");
+      offs = gaussian_bunch(*m.bunch, static_cast<size_t>(n), o.common.seed);
+    }
+    std::vector<ParticleState> starts;
+    starts.reserve(offs.size());
+    for (size_t i = 0; i < offs.size(); ++i) {
+      try {
+        starts.push_back(offset_state(*m.injection, m.particle.mass_MeV, model.rf_MHz, offs[i]));
+      } catch (const Error& e) {
+        throw Error(e.code(), std::string(e.what()) + " (particle " + std::to_string(i) + ")");
+      }
+    }
+    const bool show = !o.common.quiet && cli::stderr_is_tty();
+    std::atomic<size_t> shown{0};
+    auto progress = [&](size_t done) {
+      if (!show) return;
+      const size_t pct = done * 100 / starts.size();
+      if (pct > shown.exchange(pct)) std::fprintf(stderr, "\rturnfit-track: %zu%% of %zu particles", pct, starts.size());
+    };
+    BunchResult res = track_bunch(model, starts, st, cli::resolve_threads(o.common.threads), progress);
+    if (show) std::fprintf(stderr, "\r\033[K");
+    OutputFile out(o.common.output);
+    write_bunch_csv(out.stream(), model, res, !o.common.no_provenance);
+    open_histograms(res.histograms, res.particles);
+    out.commit();
+    for (auto& h : hist_out) h->commit();
+    if (!res.lost.empty())
+      cli::warn(o.common, std::to_string(res.lost.size()) + " of " + std::to_string(res.particles) +
+                              " particles lost; first: particle " + std::to_string(res.lost.front().first) + " " +
+                              res.lost.front().second.status);
+    return 0;
+  }
 
   std::vector<TurnRecord> turns;
   std::vector<KickRecord> kicks;
-  TrackEnd end = track_particle(model, injection_state(*m.injection, m.particle.mass_MeV), st, turns,
-                                o.kicks.empty() ? nullptr : &kicks);
-  // Open both outputs before committing either, so a failing one leaves neither behind.
+  TrackEnd end = track_particle(model, reference, st, turns, o.kicks.empty() ? nullptr : &kicks);
+  // Open every output before committing any, so a failing one leaves none behind.
   OutputFile out(o.common.output);
   std::unique_ptr<OutputFile> kout;
   if (!o.kicks.empty()) {
@@ -113,8 +245,14 @@ int run_track(const TrackOptions& o) {
     }
   }
   write_turns_csv(out.stream(), model, turns, {end}, !o.common.no_provenance);
+  if (!hist_paths.empty()) {
+    std::vector<ProbeHistogram> hs = empty_histograms(model);
+    for (const auto& t : turns) add_crossing(hs, t);
+    open_histograms(hs, 1);
+  }
   out.commit();
   if (kout) kout->commit();
+  for (auto& h : hist_out) h->commit();
   if (end.lost) cli::warn(o.common, end.status);
   return 0;
 }

@@ -7,6 +7,7 @@
 #include <vector>
 
 #include "turnfit/cli/common.hpp"
+#include "turnfit/track/bunch.hpp"
 #include "turnfit/track/tracker.hpp"
 
 namespace turnfit {
@@ -24,6 +25,10 @@ struct TrackOptions {
   bool list_integrators = false;
   std::string kicks;          ///< --kicks FILE: every gap crossing as CSV
   bool opal_deflection = false;  ///< OPAL 2022.1's RF deflection (divided by 2 pi)
+  bool opal_compat = false;      ///< OPAL-cycl 2022.1's numerics throughout
+  int particles = -1;            ///< bunch size (-1: machine's bunch.particles; 0: one particle)
+  std::string bunch;             ///< --bunch FILE: offsets instead of the Gaussian
+  std::string histograms;        ///< --histograms DIR: one probe profile per probe
 };
 
 /// Registers turnfit-track's options.
@@ -31,6 +36,14 @@ void add_track_options(CLI::App& app, TrackOptions& o);
 
 /// Runs turnfit-track; returns the exit code.
 int run_track(const TrackOptions& o);
+
+/// Writes a bunch's centroids as turns.csv (architecture.md columns, then particles and
+/// r_rms_mm), a '#' line per lost particle and a summary line.
+void write_bunch_csv(std::ostream& os, const TrackModel& model, const BunchResult& res, bool provenance);
+
+/// Writes one probe's histogram as a probe profile (position_mm,intensity; '#' metadata).
+void write_profile_csv(std::ostream& os, const ProbeLine& probe, const ProbeHistogram& h, size_t particles,
+                       bool provenance);
 
 /// Writes probe crossings as turns.csv (architecture.md columns), ending with a '#' line per
 /// particle that says how its track ended.

@@ -1,0 +1,280 @@
+// Bunch generation (Gaussian in Twiss form, or a file of offsets) and multi-threaded tracking
+// reduced to centroids and probe histograms, independent of the thread count.
+#include "turnfit/track/bunch.hpp"
+
+#include <algorithm>
+#include <atomic>
+#include <cmath>
+#include <thread>
+
+#include "turnfit/io/csv.hpp"
+#include "turnfit/io/error.hpp"
+#include "turnfit/physics/particle.hpp"
+
+namespace turnfit {
+namespace {
+
+/// SplitMix64 (Steele, Lea, Flood 2014): a small generator whose every output is a
+/// bijective mix of a counter, so seeding one stream per particle gives independent streams.
+struct SplitMix {
+  std::uint64_t s;
+  std::uint64_t next() {
+    std::uint64_t z = (s += 0x9e3779b97f4a7c15ULL);
+    z = (z ^ (z >> 30)) * 0xbf58476d1ce4e5b9ULL;
+    z = (z ^ (z >> 27)) * 0x94d049bb133111ebULL;
+    return z ^ (z >> 31);
+  }
+  /// Uniform in (0, 1): 53 random bits, never 0 (log in Box-Muller).
+  double uniform() { return (static_cast<double>(next() >> 11) + 0.5) * 0x1.0p-53; }
+};
+
+/// Standard normal variates by Box-Muller (our own, so particles are the same with every
+/// standard library), each redrawn until |u| <= cutoff (cutoff 0: untruncated).
+class Normal {
+ public:
+  Normal(std::uint64_t seed, std::uint64_t index) {
+    SplitMix mix{seed};
+    rng_.s = mix.next() ^ (index * 0xd1b54a32d192ed03ULL);
+    rng_.next();  // decorrelate neighbouring indices
+  }
+  double draw(double cutoff) {
+    for (;;) {
+      double u = next();
+      if (!(cutoff > 0) || std::fabs(u) <= cutoff) return u;
+    }
+  }
+
+ private:
+  double next() {
+    if (have_) {
+      have_ = false;
+      return spare_;
+    }
+    const double a = std::sqrt(-2 * std::log(rng_.uniform())), b = 2 * kPi * rng_.uniform();
+    spare_ = a * std::sin(b);
+    have_ = true;
+    return a * std::cos(b);
+  }
+  SplitMix rng_{0};
+  double spare_ = 0;
+  bool have_ = false;
+};
+
+/// Sums over the particles of one (probe, turn) crossing.
+struct Acc {
+  std::uint64_t n = 0;
+  double r = 0, r2 = 0, s = 0, t = 0, e = 0, pc = 0, ps = 0;
+  bool phase = true;
+  void add(const TurnRecord& tr) {
+    ++n;
+    r += tr.r_mm;
+    r2 += tr.r_mm * tr.r_mm;
+    s += tr.s_mm;
+    t += tr.t_ns;
+    e += tr.energy_MeV;
+    if (std::isfinite(tr.phase_deg)) {
+      pc += std::cos(tr.phase_deg * kPi / 180);
+      ps += std::sin(tr.phase_deg * kPi / 180);
+    } else {
+      phase = false;
+    }
+  }
+  void merge(const Acc& o) {
+    n += o.n;
+    r += o.r;
+    r2 += o.r2;
+    s += o.s;
+    t += o.t;
+    e += o.e;
+    pc += o.pc;
+    ps += o.ps;
+    phase = phase && o.phase;
+  }
+};
+
+/// What a chunk of particles contributes; merged in chunk order.
+struct Partial {
+  std::vector<std::vector<Acc>> acc;  // [probe][turn - 1]
+  std::vector<ProbeHistogram> hist;
+  std::vector<std::pair<size_t, TrackEnd>> lost;
+  double turns = 0;
+};
+
+constexpr size_t kChunk = 16;  // particles per reduction chunk (fixed: results must not
+                               // depend on how chunks are spread over threads)
+
+void merge_into(Partial& dst, Partial& src) {
+  if (dst.acc.size() < src.acc.size()) dst.acc.resize(src.acc.size());
+  for (size_t p = 0; p < src.acc.size(); ++p) {
+    if (dst.acc[p].size() < src.acc[p].size()) dst.acc[p].resize(src.acc[p].size());
+    for (size_t k = 0; k < src.acc[p].size(); ++k) dst.acc[p][k].merge(src.acc[p][k]);
+  }
+  for (size_t p = 0; p < src.hist.size(); ++p) {
+    for (size_t k = 0; k < src.hist[p].counts.size(); ++k) dst.hist[p].counts[k] += src.hist[p].counts[k];
+    dst.hist[p].outside += src.hist[p].outside;
+  }
+  for (auto& l : src.lost) dst.lost.push_back(std::move(l));
+  dst.turns += src.turns;
+}
+
+}  // namespace
+
+std::vector<ProbeHistogram> empty_histograms(const TrackModel& m) {
+  std::vector<ProbeHistogram> h(m.probes.size());
+  for (size_t p = 0; p < m.probes.size(); ++p) {
+    const ProbeLine& pl = m.probes[p];
+    h[p].lo_mm = pl.s_min_m * 1e3;
+    h[p].step_mm = pl.step_m * 1e3;
+    const double span = (pl.s_max_m - pl.s_min_m) * 1e3;
+    h[p].counts.assign(static_cast<size_t>(std::max(1.0, std::ceil(span / h[p].step_mm - 1e-9))), 0);
+  }
+  return h;
+}
+
+void add_crossing(std::vector<ProbeHistogram>& hist, const TurnRecord& tr) {
+  ProbeHistogram& h = hist[static_cast<size_t>(tr.probe)];
+  const double k = std::floor((tr.r_mm - h.lo_mm) / h.step_mm);
+  if (k >= 0 && k < static_cast<double>(h.counts.size())) ++h.counts[static_cast<size_t>(k)];
+  else ++h.outside;
+}
+
+const std::vector<std::string>& bunch_columns() {
+  static const std::vector<std::string> cols = {"dr_mm", "dpr_mrad", "dz_mm", "dpz_mrad", "dE_MeV", "dphase_deg"};
+  return cols;
+}
+
+std::vector<BunchOffset> gaussian_bunch(const Bunch& b, size_t n, std::uint64_t seed) {
+  std::vector<BunchOffset> out(n);
+  // Twiss form (e.g. Wiedemann, Particle Accelerator Physics, ch. 8): x = sqrt(eps beta) u1,
+  // x' = sqrt(eps / beta) (u2 - alpha u1) with u1, u2 standard normal; eps in mm mrad and
+  // beta in m give x in mm and x' in mrad.
+  auto plane = [](double eps, double beta, double alpha, double u1, double u2, double& x, double& xp) {
+    if (!(eps > 0)) return;
+    x = std::sqrt(eps * beta) * u1;
+    xp = std::sqrt(eps / beta) * (u2 - alpha * u1);
+  };
+  for (size_t i = 0; i < n; ++i) {
+    Normal g(seed, i);
+    const double c = b.cutoff_sigma;
+    const double u1 = g.draw(c), u2 = g.draw(c), u3 = g.draw(c), u4 = g.draw(c), u5 = g.draw(c), u6 = g.draw(c);
+    BunchOffset& o = out[i];
+    plane(b.emittance_r_mm_mrad, b.beta_r_m, b.alpha_r, u1, u2, o.dr_mm, o.dpr_mrad);
+    plane(b.emittance_z_mm_mrad, b.beta_z_m, b.alpha_z, u3, u4, o.dz_mm, o.dpz_mrad);
+    o.dE_MeV = b.sigma_E_MeV * u5;
+    o.dphase_deg = b.sigma_phase_deg * u6;
+  }
+  return out;
+}
+
+std::vector<BunchOffset> read_bunch_file(const std::string& path) {
+  CsvTable t = CsvTable::read(path);
+  const auto& known = bunch_columns();
+  for (const auto& h : t.header())
+    if (std::find(known.begin(), known.end(), h) == known.end())
+      throw data_error(t.name(), 0,
+                       "unknown column '" + h + "' (a bunch file has dr_mm, dpr_mrad, dz_mm, dpz_mrad, dE_MeV, dphase_deg)");
+  if (t.rows() == 0) throw data_error(t.name(), 0, "no particles (the file has a header but no rows)");
+  std::vector<BunchOffset> out(t.rows());
+  double BunchOffset::*fields[] = {&BunchOffset::dr_mm, &BunchOffset::dpr_mrad, &BunchOffset::dz_mm,
+                                   &BunchOffset::dpz_mrad, &BunchOffset::dE_MeV, &BunchOffset::dphase_deg};
+  for (size_t c = 0; c < known.size(); ++c) {
+    if (!t.has_column(known[c])) continue;
+    const size_t col = t.column(known[c]);
+    for (size_t i = 0; i < t.rows(); ++i) out[i].*fields[c] = t.number(i, col);
+  }
+  return out;
+}
+
+ParticleState offset_state(const Injection& inj, double mass_MeV, double rf_MHz, const BunchOffset& o) {
+  Injection in = inj;
+  in.energy_MeV += o.dE_MeV;
+  if (!(in.energy_MeV > 0))
+    throw Error(ExitCode::data, "bunch: an energy offset of " + std::to_string(o.dE_MeV) +
+                                    " MeV leaves no kinetic energy");
+  in.r_mm += o.dr_mm;
+  if (!(in.r_mm > 0))
+    throw Error(ExitCode::data, "bunch: a radius offset of " + std::to_string(o.dr_mm) + " mm puts a particle at r <= 0");
+  const double P0 = kinematics(mass_MeV, 1, inj.energy_MeV).betagamma;
+  const double P = kinematics(mass_MeV, 1, in.energy_MeV).betagamma;
+  in.pr_betagamma = P * (inj.pr_betagamma / P0 + o.dpr_mrad * 1e-3);
+  in.z_mm += o.dz_mm;
+  in.pz_betagamma = P * (inj.pz_betagamma / P0 + o.dpz_mrad * 1e-3);
+  if (in.pr_betagamma * in.pr_betagamma + in.pz_betagamma * in.pz_betagamma >= P * P)
+    throw Error(ExitCode::data, "bunch: angle offsets leave a particle no azimuthal momentum");
+  if (o.dphase_deg != 0) {
+    if (!(rf_MHz > 0)) throw Error(ExitCode::data, "bunch: a phase offset needs an RF frequency (rf.frequency_MHz)");
+    in.t_ns += o.dphase_deg / (360 * rf_MHz * 1e6) * 1e9;
+  }
+  return injection_state(in, mass_MeV);
+}
+
+BunchResult track_bunch(const TrackModel& model, const std::vector<ParticleState>& starts,
+                        const TrackSettings& settings, unsigned threads,
+                        const std::function<void(size_t)>& progress) {
+  const size_t n = starts.size(), nchunks = (n + kChunk - 1) / kChunk;
+  std::vector<Partial> parts(nchunks);
+  std::atomic<size_t> next{0}, done{0};
+  auto work = [&] {
+    std::vector<TurnRecord> turns;
+    for (;;) {
+      const size_t c = next.fetch_add(1);
+      if (c >= nchunks) return;
+      Partial& part = parts[c];
+      part.acc.resize(model.probes.size());
+      part.hist = empty_histograms(model);
+      for (size_t i = c * kChunk; i < std::min(n, (c + 1) * kChunk); ++i) {
+        turns.clear();
+        TrackEnd end = track_particle(model, starts[i], settings, turns);
+        part.turns += end.turns;
+        for (const auto& tr : turns) {
+          auto& row = part.acc[static_cast<size_t>(tr.probe)];
+          if (row.size() < static_cast<size_t>(tr.turn)) row.resize(static_cast<size_t>(tr.turn));
+          row[static_cast<size_t>(tr.turn - 1)].add(tr);
+          add_crossing(part.hist, tr);
+        }
+        if (end.lost) part.lost.emplace_back(i, std::move(end));
+      }
+      const size_t d = done.fetch_add(std::min(n, (c + 1) * kChunk) - c * kChunk) +
+                       (std::min(n, (c + 1) * kChunk) - c * kChunk);
+      if (progress) progress(d);
+    }
+  };
+  const unsigned nt = std::max(1u, std::min<unsigned>(threads, static_cast<unsigned>(std::max<size_t>(nchunks, 1))));
+  std::vector<std::thread> pool;
+  for (unsigned k = 1; k < nt; ++k) pool.emplace_back(work);
+  work();
+  for (auto& t : pool) t.join();
+
+  Partial all;
+  all.acc.resize(model.probes.size());
+  all.hist = empty_histograms(model);
+  for (auto& p : parts) merge_into(all, p);
+
+  BunchResult res;
+  res.particles = n;
+  res.particle_turns = all.turns;
+  res.histograms = std::move(all.hist);
+  res.lost = std::move(all.lost);
+  for (size_t p = 0; p < all.acc.size(); ++p)
+    for (size_t k = 0; k < all.acc[p].size(); ++k) {
+      const Acc& a = all.acc[p][k];
+      if (a.n == 0) continue;
+      Centroid c;
+      c.probe = static_cast<int>(p);
+      c.turn = static_cast<int>(k + 1);
+      c.particles = a.n;
+      const double inv = 1.0 / static_cast<double>(a.n);
+      c.r_mm = a.r * inv;
+      c.r_rms_mm = std::sqrt(std::max(0.0, a.r2 * inv - c.r_mm * c.r_mm));
+      c.s_mm = a.s * inv;
+      c.t_ns = a.t * inv;
+      c.energy_MeV = a.e * inv;
+      c.phase_deg = a.phase ? std::atan2(a.ps, a.pc) * 180 / kPi : std::nan("");
+      res.centroids.push_back(c);
+    }
+  std::stable_sort(res.centroids.begin(), res.centroids.end(),
+                   [](const Centroid& a, const Centroid& b) { return a.t_ns < b.t_ns; });
+  return res;
+}
+
+}  // namespace turnfit

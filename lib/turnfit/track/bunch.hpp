@@ -1,0 +1,79 @@
+// Bunches: many particles around the injection point, tracked on all threads, reduced to
+// per-turn centroids and to histograms along each probe (simulated probe profiles).
+#pragma once
+
+#include <cstdint>
+#include <functional>
+#include <string>
+#include <vector>
+
+#include "turnfit/machine/machine.hpp"
+#include "turnfit/track/tracker.hpp"
+
+namespace turnfit {
+
+/// One particle's offsets from the injection point (the reference particle has all zeros).
+struct BunchOffset {
+  double dr_mm = 0;       ///< radius
+  double dpr_mrad = 0;    ///< radial angle p_r / p
+  double dz_mm = 0;       ///< height
+  double dpz_mrad = 0;    ///< vertical angle p_z / p
+  double dE_MeV = 0;      ///< kinetic energy
+  double dphase_deg = 0;  ///< RF phase: positive starts later (dt = dphase / (360 f_rf))
+};
+
+/// The columns a bunch file may have (any subset, at least one; absent columns are 0).
+const std::vector<std::string>& bunch_columns();
+
+/// Draws n offsets from the bunch's Gaussian. Particle i depends only on (seed, i), so a run
+/// gives the same particles whatever the thread count, and n + 1 particles extend n.
+std::vector<BunchOffset> gaussian_bunch(const Bunch& b, size_t n, std::uint64_t seed);
+
+/// Reads offsets from a CSV file with a header of bunch_columns() names ("-" for stdin);
+/// errors name the file and line.
+std::vector<BunchOffset> read_bunch_file(const std::string& path);
+
+/// The start state of a particle at `o` from the injection point. rf_MHz converts the phase
+/// offset to time (EX_DATAERR if a phase offset is asked for without RF).
+ParticleState offset_state(const Injection& inj, double mass_MeV, double rf_MHz, const BunchOffset& o);
+
+/// Counts of probe crossings along a probe, in bins of the probe's step.
+struct ProbeHistogram {
+  double lo_mm = 0;    ///< lower edge of the first bin (the probe's s_min)
+  double step_mm = 0;  ///< bin width (the probe's step)
+  std::vector<std::uint64_t> counts;
+  std::uint64_t outside = 0;  ///< crossings recorded outside the bins (none for a plain probe)
+};
+
+/// Empty histograms, one per probe of the model: bins of the probe's step over its extent.
+std::vector<ProbeHistogram> empty_histograms(const TrackModel& model);
+
+/// Counts one probe crossing (its recorded radius) in its probe's histogram.
+void add_crossing(std::vector<ProbeHistogram>& h, const TurnRecord& tr);
+
+/// The bunch at one crossing of one probe: means over the particles that crossed.
+struct Centroid {
+  int probe = 0;
+  int turn = 0;
+  std::uint64_t particles = 0;
+  double r_mm = 0, r_rms_mm = 0, s_mm = 0, t_ns = 0, energy_MeV = 0;
+  double phase_deg = 0;  ///< circular mean; NaN without RF
+};
+
+/// What a bunch run produced.
+struct BunchResult {
+  std::vector<Centroid> centroids;            ///< in the order of their mean time
+  std::vector<ProbeHistogram> histograms;     ///< one per probe of the model
+  std::vector<std::pair<size_t, TrackEnd>> lost;  ///< index and end of every lost particle
+  size_t particles = 0;
+  double particle_turns = 0;                  ///< revolutions tracked, summed over particles
+};
+
+/// Tracks every start state on `threads` threads. Results do not depend on the thread count
+/// (particles are reduced in fixed chunks, merged in order). `progress`, if given, is called
+/// from worker threads with the number of particles done.
+BunchResult track_bunch(const TrackModel& model, const std::vector<ParticleState>& starts,
+                        const TrackSettings& settings, unsigned threads,
+                        const std::function<void(size_t)>& progress = {});
+
+}  // namespace turnfit
