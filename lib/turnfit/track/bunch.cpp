@@ -63,12 +63,15 @@ class Normal {
 /// Sums over the particles of one (probe, turn) crossing.
 struct Acc {
   std::uint64_t n = 0;
-  double r = 0, r2 = 0, s = 0, t = 0, e = 0, pc = 0, ps = 0;
+  double r = 0, m2 = 0;  // mean radius and sum of squared deviations (Welford): r^2 sums would
+                         // lose the micrometre spread of a 4 m radius to cancellation
+  double s = 0, t = 0, e = 0, pc = 0, ps = 0;
   bool phase = true;
   void add(const TurnRecord& tr) {
     ++n;
-    r += tr.r_mm;
-    r2 += tr.r_mm * tr.r_mm;
+    const double d = tr.r_mm - r;
+    r += d / static_cast<double>(n);
+    m2 += d * (tr.r_mm - r);
     s += tr.s_mm;
     t += tr.t_ns;
     e += tr.energy_MeV;
@@ -80,9 +83,12 @@ struct Acc {
     }
   }
   void merge(const Acc& o) {
+    if (o.n == 0) return;
+    // Chan, Golub, LeVeque (1979): pairwise combination of means and squared deviations.
+    const double na = static_cast<double>(n), nb = static_cast<double>(o.n), d = o.r - r;
     n += o.n;
-    r += o.r;
-    r2 += o.r2;
+    r += d * nb / (na + nb);
+    m2 += o.m2 + d * d * na * nb / (na + nb);
     s += o.s;
     t += o.t;
     e += o.e;
@@ -264,8 +270,8 @@ BunchResult track_bunch(const TrackModel& model, const std::vector<ParticleState
       c.turn = static_cast<int>(k + 1);
       c.particles = a.n;
       const double inv = 1.0 / static_cast<double>(a.n);
-      c.r_mm = a.r * inv;
-      c.r_rms_mm = std::sqrt(std::max(0.0, a.r2 * inv - c.r_mm * c.r_mm));
+      c.r_mm = a.r;
+      c.r_rms_mm = std::sqrt(std::max(0.0, a.m2 * inv));
       c.s_mm = a.s * inv;
       c.t_ns = a.t * inv;
       c.energy_MeV = a.e * inv;
