@@ -1,5 +1,6 @@
 // RK4 in time with a fixed number of steps per turn (OPAL-cycl's scheme); gap kicks at the
-// crossing time located on the Hermite path through the step's ends, probe crossings likewise.
+// crossing time located on the Hermite path through the step's ends (or, with opal_compat, at
+// OPAL's straight-line estimate of it), probe crossings interpolated on the Hermite path.
 #include <array>
 #include <cmath>
 
@@ -97,6 +98,60 @@ TrackEnd track_time(const TrackModel& m, const ParticleState& s0, const TrackSet
     end.status = "lost: " + why + fmt(" at r = %.1f mm, azimuth %.2f deg, turn %.3f", f.lost_r * 1e3,
                                       std::remainder(th, kTwoPi) * 180 / kPi, (th - th0) / kTwoPi);
   };
+  // OPAL-cycl 2022.1's gap handling (physics.md, "Single-gap cavity"): after a full step that
+  // crossed a gap, restart from the step's start, advance by the straight-line estimate
+  // dt1 = d_old / (beta_old c) of the time to the gap, kick at t + dt1, advance the rest of
+  // the step; the step after a kick tests no gap. Returns false if the particle was lost.
+  bool opal_skip_gaps = false;
+  auto opal_gap_step = [&](const TState& y0) -> bool {
+    if (opal_skip_gaps) {
+      opal_skip_gaps = false;
+      return true;
+    }
+    for (size_t gi = 0; gi < m.gaps.size(); ++gi) {
+      const Gap& gp = m.gaps[gi];
+      const double da = gp.distance(y0[0], y0[1]), db = gp.distance(y[0], y[1]);
+      if (!(da > 0 && db <= 0)) continue;
+      opal_skip_gaps = true;
+      const double p2 = y0[3] * y0[3] + y0[4] * y0[4] + y0[5] * y0[5];
+      const double beta0 = std::sqrt(p2) / std::sqrt(1 + p2);
+      const double dt1 = da / (beta0 * kSpeedOfLight), dt2 = dt - dt1;
+      y = y0;
+      // OPAL leaves out sub-steps shorter than 1e-9 of a step (its test dt / dt_i < 1e9).
+      if (dt / dt1 < 1e9 && !rk4_t(f, dt1, y)) {
+        lose("left the field map");
+        return false;
+      }
+      // The straight-line estimate stops short of the gap line; OPAL places the particle on
+      // the gap by its radius, rho = sqrt(r^2 - PDIS^2), i.e. where the circle through the
+      // particle meets the gap line.
+      const double r = std::hypot(y[0], y[1]), thc = gp.crossing_azimuth(r);
+      KickRecord kr;
+      kr.gap = static_cast<int>(gi);
+      kr.turn = ++gap_count[gi];
+      kr.theta_deg = std::atan2(y[1], y[0]) * 180 / kPi;
+      double px = y[3], py = y[4];
+      kr.kick = gp.kick(r * std::cos(thc), r * std::sin(thc), t + dt1, mass, m.charge_e, st.gap_physics, px, py,
+                        y[5]);
+      if (kr.kick.stopped) {
+        f.lost_r = r;
+        if (kicks) kicks->push_back(kr);
+        lose("stopped by gap '" + gp.name() + "'");
+        return false;
+      }
+      if (kr.kick.active) {
+        y[3] = px;
+        y[4] = py;
+      }
+      if (kicks) kicks->push_back(kr);
+      if (dt / dt2 < 1e9 && !rk4_t(f, dt2, y)) {
+        lose("left the field map");
+        return false;
+      }
+      break;  // one gap per step (steps are far shorter than the gap spacing)
+    }
+    return true;
+  };
   TState d0, d1;
   while (th < th_end) {
     const TState y0 = y;
@@ -104,47 +159,51 @@ TrackEnd track_time(const TrackModel& m, const ParticleState& s0, const TrackSet
       lose("left the field map");
       break;
     }
-    // Gap crossings: find the exact crossing time in the step, integrate to it, kick, finish.
-    for (size_t gi = 0; gi < m.gaps.size(); ++gi) {
-      const Gap& gp = m.gaps[gi];
-      const double da = gp.distance(y0[0], y0[1]), db = gp.distance(y[0], y[1]);
-      if (!(da > 0 && db <= 0)) continue;
-      // The direction test (positive to negative distance) picks the crossing on the gap's
-      // own half of the line; the particle crosses the other half the other way.
-      if (!f(y0, d0) || !f(y, d1)) break;
-      // The Hermite path locates the crossing to O(dt^4); a partial RK4 step from the start
-      // of the step then puts the particle there (physics.md: exact gap time, not OPAL's
-      // straight-line estimate).
-      const double u = crossing_fraction(y0, d0, y, d1, dt, [&](double x, double yy) { return gp.distance(x, yy); });
-      TState yc = y0;
-      if (!rk4_t(f, u * dt, yc)) {
-        lose("left the field map");
-        break;
-      }
-      const double tc = t + u * dt;
-      KickRecord kr;
-      kr.gap = static_cast<int>(gi);
-      kr.turn = ++gap_count[gi];
-      kr.theta_deg = std::atan2(yc[1], yc[0]) * 180 / kPi;
-      double px = yc[3], py = yc[4];
-      kr.kick = gp.kick(yc[0], yc[1], tc, mass, m.charge_e, st.gap_physics, px, py, yc[5]);
-      if (kr.kick.stopped) {
-        f.lost_r = std::hypot(yc[0], yc[1]);
+    if (st.opal_compat) {
+      if (!opal_gap_step(y0)) break;
+    } else {
+      // Gap crossings: find the exact crossing time in the step, integrate to it, kick, finish.
+      for (size_t gi = 0; gi < m.gaps.size(); ++gi) {
+        const Gap& gp = m.gaps[gi];
+        const double da = gp.distance(y0[0], y0[1]), db = gp.distance(y[0], y[1]);
+        if (!(da > 0 && db <= 0)) continue;
+        // The direction test (positive to negative distance) picks the crossing on the gap's
+        // own half of the line; the particle crosses the other half the other way.
+        if (!f(y0, d0) || !f(y, d1)) break;
+        // The Hermite path locates the crossing to O(dt^4); a partial RK4 step from the start
+        // of the step then puts the particle there (physics.md: exact gap time, not OPAL's
+        // straight-line estimate).
+        const double u = crossing_fraction(y0, d0, y, d1, dt, [&](double x, double yy) { return gp.distance(x, yy); });
+        TState yc = y0;
+        if (!rk4_t(f, u * dt, yc)) {
+          lose("left the field map");
+          break;
+        }
+        const double tc = t + u * dt;
+        KickRecord kr;
+        kr.gap = static_cast<int>(gi);
+        kr.turn = ++gap_count[gi];
+        kr.theta_deg = std::atan2(yc[1], yc[0]) * 180 / kPi;
+        double px = yc[3], py = yc[4];
+        kr.kick = gp.kick(yc[0], yc[1], tc, mass, m.charge_e, st.gap_physics, px, py, yc[5]);
+        if (kr.kick.stopped) {
+          f.lost_r = std::hypot(yc[0], yc[1]);
+          if (kicks) kicks->push_back(kr);
+          lose("stopped by gap '" + gp.name() + "'");
+          break;
+        }
+        if (kr.kick.active) {
+          yc[3] = px;
+          yc[4] = py;
+        }
         if (kicks) kicks->push_back(kr);
-        lose("stopped by gap '" + gp.name() + "'");
-        break;
+        y = yc;
+        if (!rk4_t(f, (1 - u) * dt, y)) {
+          lose("left the field map");
+          break;
+        }
+        break;  // one gap per step (steps are far shorter than the gap spacing)
       }
-      if (kr.kick.active) {
-        yc[3] = px;
-        yc[4] = py;
-      }
-      if (kicks) kicks->push_back(kr);
-      y = yc;
-      if (!rk4_t(f, (1 - u) * dt, y)) {
-        lose("left the field map");
-        break;
-      }
-      break;  // one gap per step (steps are far shorter than the gap spacing)
     }
     if (end.lost) break;
     // Probe crossings, interpolated between the step ends.

@@ -66,7 +66,8 @@ struct TrackSettings {
   double turns = 190;      ///< revolutions to track
   GapPhysics gap_physics = GapPhysics::turnfit;
   /// rk4 only: OPAL-cycl 2022.1's gap handling (straight-line gap-time estimate, no gap test in
-  /// the step after a kick) and its single-precision p_theta at injection.
+  /// the step after a kick). The rest of OPAL's numerics are ModelOptions::opal_map,
+  /// GapPhysics::opal and injection_state(..., opal_single_precision).
   bool opal_compat = false;
 };
 
