@@ -7,6 +7,7 @@
 #include "../support.hpp"
 #include "turnfit/physics/particle.hpp"
 #include "turnfit/track/tracker.hpp"
+#include "turnfit/trimcoil/trimcoil.hpp"
 
 using namespace turnfit;
 
@@ -126,4 +127,54 @@ TEST_CASE("track: the azimuth scheme agrees with RK4 at 23040 steps per turn", "
   double worst = 0;
   for (size_t i = 0; i < a.size(); ++i) worst = std::max(worst, std::fabs(a[i].r_mm - b[i].r_mm));
   CHECK(worst < 0.05);
+}
+
+TEST_CASE("track: trim coil lookup tables follow the formulas within their tolerance", "[track][trimcoil]") {
+  // The mirrored shape (kink at the middle, two exponentials) and a rational PSI-BFIELD shape
+  // (edges at rmin/rmax, where the field jumps to 0).
+  TrimCoil mir;
+  mir.name = "TC15";
+  mir.type = "psi-bfield-mirrored";
+  mir.rmin_mm = 4350;
+  mir.rmax_mm = 4470;
+  mir.bmax_T = 1.4e-3;
+  mir.slope_per_mm = 0.6;
+  TrimCoil rat;
+  rat.name = "TC2";
+  rat.type = "psi-bfield";
+  rat.rmin_mm = 2000;
+  rat.rmax_mm = 2300;
+  rat.bmax_T = 1e-3;
+  rat.coefnum = {1.0, -0.5, 0.1};
+  rat.coefdenom = {1.0, 0.2, -0.3, 0.05, 0.01};
+  for (const TrimCoil& c : {mir, rat}) {
+    TrimCoilField exact(c, 8), table(c, 8);
+    REQUIRE(table.tabulate(1.9, 4.7) > 0);
+    double smax = 0, dmax = 0, es = 0, ed = 0;
+    for (int i = 0; i <= 280000; ++i) {  // every 0.01 mm, node or not
+      const double r = 1.9 + i * 1e-5;
+      // The mirrored slope jumps at the middle: there the side is a convention.
+      if (c.type == "psi-bfield-mirrored" && std::fabs(r - 0.5e-3 * (c.rmin_mm + c.rmax_mm)) < 1e-9) continue;
+      double s0, d0, s1, d1;
+      exact.shape_exact(r, s0, d0);
+      table.shape(r, s1, d1);
+      smax = std::max(smax, std::fabs(s0));
+      dmax = std::max(dmax, std::fabs(d0));
+      es = std::max(es, std::fabs(s1 - s0));
+      ed = std::max(ed, std::fabs(d1 - d0));
+    }
+    INFO(c.name << ": max value error " << es / smax << ", slope error " << ed / dmax << " of the peaks");
+    CHECK(es <= 1.5e-7 * smax);
+    CHECK(ed <= 2e-6 * dmax);
+    // The support's edges stay sharp: zero just outside, the formula just inside.
+    if (c.type == "psi-bfield") {
+      double s, d;
+      table.shape(c.rmax_mm * 1e-3 + 1e-9, s, d);
+      CHECK(s == 0);
+      table.shape(c.rmin_mm * 1e-3 + 1e-7, s, d);
+      double se, de;
+      exact.shape_exact(c.rmin_mm * 1e-3 + 1e-7, se, de);
+      CHECK(s == Approx(se).epsilon(1e-6));
+    }
+  }
 }

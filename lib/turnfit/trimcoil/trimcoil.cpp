@@ -77,6 +77,73 @@ TrimCoilField::TrimCoilField(const TrimCoil& coil, int symmetry) : coil_(coil), 
 }
 
 void TrimCoilField::shape(double r_m, double& s, double& ds) const {
+  for (const auto& g : lut_) {
+    const double x = (r_m - g.r0) * g.inv_h;
+    if (!(x >= 0 && x <= static_cast<double>(g.s.size() - 1))) continue;
+    const size_t i = std::min(static_cast<size_t>(x), g.s.size() - 2);
+    s = hermite(g.s[i], g.s[i + 1], g.ds[i], g.ds[i + 1], g.h, x - static_cast<double>(i), ds);
+    return;
+  }
+  shape_exact(r_m, s, ds);
+}
+
+size_t TrimCoilField::tabulate(double r_lo, double r_hi, double rel_tol) {
+  lut_.clear();
+  if (kind_ == 3 || !(r_hi > r_lo)) return 0;
+  // Pieces where the shape is smooth: the coil's support, split where the formula changes.
+  const double rmin = coil_.rmin_mm * 1e-3, rmax = coil_.rmax_mm * 1e-3;
+  std::vector<double> cuts;
+  if (kind_ == 2) {
+    cuts = {r_lo, 0.5 * (rmin + rmax), r_hi};  // mirrored: kink at the middle, no edges
+  } else {
+    cuts = {std::max(r_lo, rmin), std::min(r_hi, rmax)};
+  }
+  std::vector<Segment> segs;
+  size_t nodes = 0;
+  for (size_t k = 0; k + 1 < cuts.size(); ++k) {
+    const double a = std::max(r_lo, cuts[k]), b = std::min(r_hi, cuts[k + 1]);
+    if (!(b > a)) continue;
+    // Inside the piece (the end nodes take the one-sided values of this piece).
+    const double eps = 1e-12 * (b - a);
+    auto exact = [&](double r, double& v, double& d) { shape_exact(std::min(std::max(r, a + eps), b - eps), v, d); };
+    Segment g{};
+    for (size_t n = 65; n <= (1u << 21); n = 2 * n - 1) {
+      g.r0 = a;
+      g.h = (b - a) / static_cast<double>(n - 1);
+      g.inv_h = 1 / g.h;
+      g.s.resize(n);
+      g.ds.resize(n);
+      double smax = 0, dmax = 0;
+      for (size_t i = 0; i < n; ++i) {
+        exact(a + static_cast<double>(i) * g.h, g.s[i], g.ds[i]);
+        smax = std::max(smax, std::fabs(g.s[i]));
+        dmax = std::max(dmax, std::fabs(g.ds[i]));
+      }
+      double es = 0, ed = 0;
+      // The Hermite value error peaks mid-interval, the slope error at t = 1/2 - 1/(2 sqrt 3)
+      // and its mirror (the error terms go as t^2 (1-t)^2 and its derivative).
+      for (size_t i = 0; i + 1 < n; ++i) {
+        for (double t : {0.5, 0.21132486540518713, 0.78867513459481287}) {
+          double v, d, dv;
+          exact(a + (static_cast<double>(i) + t) * g.h, v, d);
+          const double hv = hermite(g.s[i], g.s[i + 1], g.ds[i], g.ds[i + 1], g.h, t, dv);
+          es = std::max(es, std::fabs(hv - v));
+          ed = std::max(ed, std::fabs(dv - d));
+        }
+      }
+      if (es <= rel_tol * smax && ed <= rel_tol * std::max(dmax, 1e-300) * 10) {
+        nodes += n;
+        segs.push_back(std::move(g));
+        break;
+      }
+      if (n > (1u << 20)) return 0;  // too rough to tabulate: keep the formula everywhere
+    }
+  }
+  lut_ = std::move(segs);
+  return nodes;
+}
+
+void TrimCoilField::shape_exact(double r_m, double& s, double& ds) const {
   s = ds = 0;
   const double rmin = coil_.rmin_mm * 1e-3, rmax = coil_.rmax_mm * 1e-3;
   if (kind_ == 2) {

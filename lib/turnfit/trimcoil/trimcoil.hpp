@@ -26,7 +26,19 @@ class TrimCoilField {
            double threshold_T, double& b, double& db_dr, double& db_dth) const;
 
   /// The radial shape s(r) and ds/dr [1/m] (b = bmax * s before windows); 0 outside.
+  /// From the lookup table when one was built, else from the formula.
   void shape(double r_m, double& s, double& ds_dr) const;
+
+  /// The shape from its formula (what tabulate() approximates).
+  void shape_exact(double r_m, double& s, double& ds_dr) const;
+
+  /// Replaces the formula on [r_lo, r_hi] by a cubic Hermite table through exact values and
+  /// slopes, split at the shape's kinks and edges, refined until every interval midpoint is
+  /// within `rel_tol` of the shape's peak (and the slope within 10 rel_tol of the peak slope:
+  /// Hermite slopes are one order less accurate). A tracker evaluates
+  /// the coil several times per step; the mirrored shape costs two exponentials. Returns the
+  /// number of nodes (0: not tabulated, e.g. tables, which are already tables).
+  size_t tabulate(double r_lo_m, double r_hi_m, double rel_tol = 1e-7);
 
   /// The coil's name.
   const std::string& name() const { return coil_.name; }
@@ -40,6 +52,11 @@ class TrimCoilField {
   int kind_;  // 0 bfield, 1 phase, 2 mirrored, 3 table
   bool everywhere_ = false;  // full circle, all sectors: skip the azimuth test
   std::vector<double> tr_, ts_, tm_;  // table radii [m], shape values, Hermite slopes
+  struct Segment {  // equally spaced lookup nodes on [r0, r0 + (n - 1) h]
+    double r0, h, inv_h;
+    std::vector<double> s, ds;
+  };
+  std::vector<Segment> lut_;  // sorted, disjoint; outside them the formula applies
 };
 
 /// Value, first and second derivative of the rational function f(x)/g(x) with polynomial
