@@ -100,7 +100,8 @@ double crossing_of(const TrackModel& m, const Event& e, double r) {
 }  // namespace
 
 TrackEnd track_azimuth(const TrackModel& m, const ParticleState& s0, const TrackSettings& st,
-                       std::vector<TurnRecord>& turns, std::vector<KickRecord>* kicks) {
+                       std::vector<TurnRecord>& turns, std::vector<KickRecord>* kicks,
+                       std::vector<PathPoint>* path) {
   TrackEnd end;
   double P = std::sqrt(s0.px * s0.px + s0.py * s0.py + s0.pz * s0.pz);  // beta gamma
   double th = std::atan2(s0.y, s0.x);
@@ -160,6 +161,7 @@ TrackEnd track_azimuth(const TrackModel& m, const ParticleState& s0, const Track
       break;
     }
     th = std::max(th, stop);
+    if (path) path->push_back({th * 180 / kPi, y[0] * 1e3, y[2] * 1e3, y[1] * 1e3, y[4] * 1e9, energy()});
     if (which < 0) continue;
     Event& e = events[static_cast<size_t>(which)];
     // Land exactly on the element's line: its azimuth depends on r, so iterate.

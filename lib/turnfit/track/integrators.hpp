@@ -24,10 +24,12 @@ inline std::string fmt(const char* f, double a, double b = 0, double c = 0) {
 
 /// RK4 in azimuth on the map grid (the default integrator).
 TrackEnd track_azimuth(const TrackModel& m, const ParticleState& s0, const TrackSettings& st,
-                       std::vector<TurnRecord>& turns, std::vector<KickRecord>* kicks);
+                       std::vector<TurnRecord>& turns, std::vector<KickRecord>* kicks,
+                       std::vector<PathPoint>* path);
 
 /// RK4 in time with a fixed number of steps per turn (OPAL-cycl's scheme).
 TrackEnd track_time(const TrackModel& m, const ParticleState& s0, const TrackSettings& st,
-                    std::vector<TurnRecord>& turns, std::vector<KickRecord>* kicks);
+                    std::vector<TurnRecord>& turns, std::vector<KickRecord>* kicks,
+                       std::vector<PathPoint>* path);
 
 }  // namespace turnfit::detail

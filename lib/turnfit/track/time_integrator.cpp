@@ -80,7 +80,8 @@ double crossing_fraction(const TState& a, const TState& da, const TState& b, con
 }  // namespace
 
 TrackEnd track_time(const TrackModel& m, const ParticleState& s0, const TrackSettings& st,
-                    std::vector<TurnRecord>& turns, std::vector<KickRecord>* kicks) {
+                    std::vector<TurnRecord>& turns, std::vector<KickRecord>* kicks,
+                       std::vector<PathPoint>* path) {
   TrackEnd end;
   const int spt = st.steps_per_turn > 0 ? st.steps_per_turn : 2880;
   const double f_rev = m.rf_MHz * 1e6 / std::max(1, m.harmonic);
@@ -234,6 +235,10 @@ TrackEnd track_time(const TrackModel& m, const ParticleState& s0, const TrackSet
     t += dt;
     const double thn = std::atan2(y[1], y[0]);
     th += std::remainder(thn - std::remainder(th, kTwoPi), kTwoPi);
+    if (path) {
+      const double r = std::hypot(y[0], y[1]), P = std::sqrt(y[3] * y[3] + y[4] * y[4] + y[5] * y[5]);
+      path->push_back({th * 180 / kPi, r * 1e3, y[2] * 1e3, (y[0] * y[3] + y[1] * y[4]) / (r * P) * 1e3, t * 1e9, energy(y)});
+    }
   }
   if (!end.lost) end.status = "turn limit";
   end.turns = (th - th0) / kTwoPi;

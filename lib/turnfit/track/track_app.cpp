@@ -42,6 +42,7 @@ void add_track_options(CLI::App& app, TrackOptions& o) {
       ->check(CLI::Range(0, 100000000));
   app.add_option("--bunch", o.bunch, "Bunch from a CSV of offsets (dr_mm,dpr_mrad,dz_mm,dpz_mrad,dE_MeV,dphase_deg)");
   app.add_option("--histograms", o.histograms, "Write a probe profile per probe (DIR/<probe>.csv) of the bunch");
+  app.add_option("--orbit", o.orbit, "Write the particle's path after every step (CSV; the reference particle of a bunch)");
   cli::add_common_options(app, o.common, cli::kOutput | cli::kThreads | cli::kSeed);
 }
 
@@ -106,6 +107,18 @@ void write_turns_csv(std::ostream& os, const TrackModel& model, const std::vecto
   }
 }
 
+/// The path as CSV: one row per integration step.
+void write_path_csv(std::ostream& os, const std::vector<PathPoint>& path, bool provenance) {
+  if (provenance) os << cli::provenance_comment();
+  os << "theta_deg,r_mm,z_mm,pr_mrad,t_ns,energy_MeV\n";
+  char buf[200];
+  for (const auto& p : path) {
+    std::snprintf(buf, sizeof buf, "%.6f,%.6f,%.6f,%.6f,%.6f,%.8f\n", p.theta_deg, p.r_mm, p.z_mm, p.pr_mrad, p.t_ns,
+                  p.energy_MeV);
+    os << buf;
+  }
+}
+
 int run_track(const TrackOptions& o) {
   if (o.list_integrators) {
     for (const auto& [name, what] : list_integrators()) std::cout << name << "\t" << what << "\n";
@@ -139,8 +152,6 @@ int run_track(const TrackOptions& o) {
   st.steps_per_turn = o.steps_per_turn > 0 ? o.steps_per_turn : m.tracking.steps_per_turn > 0 ? m.tracking.steps_per_turn : 2880;
   if (st.steps_per_turn < 16)
     throw data_error(m.path, 0, "/tracking/steps_per_turn: " + std::to_string(st.steps_per_turn) + " is too few (at least 16)");
-  if (!o.kicks.empty() && (o.kicks == "-") && (o.common.output == "-" || o.common.output.empty()))
-    throw usage_error("--kicks - and the turns table cannot both go to stdout (use -o)");
   st.step_deg = o.step_deg > 0 ? o.step_deg : m.tracking.step_deg;
   st.turns = o.turns > 0 ? o.turns : m.tracking.turns > 0 ? m.tracking.turns : 0;
   if (!(st.turns > 0)) throw usage_error("no turn count: give --turns or tracking.turns in the machine");
@@ -157,6 +168,18 @@ int run_track(const TrackOptions& o) {
   const bool bunch = n > 0 || (!bfile.empty() && o.particles != 0);
   if (!bunch && !o.bunch.empty()) throw usage_error("--bunch with --particles 0: choose one");
   if (bunch && !o.kicks.empty()) throw usage_error("--kicks records one particle: not with a bunch");
+  {
+    int to_stdout = (o.common.output.empty() || o.common.output == "-") + (o.kicks == "-") + (o.orbit == "-");
+    if (to_stdout > 1) throw usage_error("only one output can go to stdout (use -o, --kicks FILE, --orbit FILE)");
+  }
+  // The reference particle's path (also for a bunch: its centre line).
+  std::vector<PathPoint> path;
+  std::unique_ptr<OutputFile> orbit_out;
+  auto open_orbit = [&] {
+    if (o.orbit.empty()) return;
+    orbit_out = std::make_unique<OutputFile>(o.orbit);
+    write_path_csv(orbit_out->stream(), path, !o.common.no_provenance);
+  };
 
   // Probe profile files, checked before the work so a bad name fails fast.
   std::vector<std::string> hist_paths;
@@ -212,13 +235,19 @@ int run_track(const TrackOptions& o) {
       const size_t pct = done * 100 / starts.size();
       if (pct > shown.exchange(pct)) std::fprintf(stderr, "\rturnfit-track: %zu%% of %zu particles", pct, starts.size());
     };
+    if (!o.orbit.empty()) {
+      std::vector<TurnRecord> unused;
+      track_particle(model, reference, st, unused, nullptr, &path);
+    }
     BunchResult res = track_bunch(model, starts, st, cli::resolve_threads(o.common.threads), progress);
     if (show) std::fprintf(stderr, "\r\033[K");
     OutputFile out(o.common.output);
     write_bunch_csv(out.stream(), model, res, !o.common.no_provenance);
     open_histograms(res.histograms, res.particles);
+    open_orbit();
     out.commit();
     for (auto& h : hist_out) h->commit();
+    if (orbit_out) orbit_out->commit();
     if (!res.lost.empty())
       cli::warn(o.common, std::to_string(res.lost.size()) + " of " + std::to_string(res.particles) +
                               " particles lost; first: particle " + std::to_string(res.lost.front().first) + " " +
@@ -228,7 +257,8 @@ int run_track(const TrackOptions& o) {
 
   std::vector<TurnRecord> turns;
   std::vector<KickRecord> kicks;
-  TrackEnd end = track_particle(model, reference, st, turns, o.kicks.empty() ? nullptr : &kicks);
+  TrackEnd end = track_particle(model, reference, st, turns, o.kicks.empty() ? nullptr : &kicks,
+                                o.orbit.empty() ? nullptr : &path);
   // Open every output before committing any, so a failing one leaves none behind.
   OutputFile out(o.common.output);
   std::unique_ptr<OutputFile> kout;
@@ -250,9 +280,11 @@ int run_track(const TrackOptions& o) {
     for (const auto& t : turns) add_crossing(hs, t);
     open_histograms(hs, 1);
   }
+  open_orbit();
   out.commit();
   if (kout) kout->commit();
   for (auto& h : hist_out) h->commit();
+  if (orbit_out) orbit_out->commit();
   if (end.lost) cli::warn(o.common, end.status);
   return 0;
 }

@@ -29,6 +29,7 @@ struct TrackOptions {
   int particles = -1;            ///< bunch size (-1: machine's bunch.particles; 0: one particle)
   std::string bunch;             ///< --bunch FILE: offsets instead of the Gaussian
   std::string histograms;        ///< --histograms DIR: one probe profile per probe
+  std::string orbit;             ///< --orbit FILE: the (reference) particle's path, every step
 };
 
 /// Registers turnfit-track's options.

@@ -37,9 +37,10 @@ double kinetic_energy(const ParticleState& s, double mass_MeV) {
 }
 
 TrackEnd track_particle(const TrackModel& model, const ParticleState& start, const TrackSettings& settings,
-                        std::vector<TurnRecord>& turns, std::vector<KickRecord>* kicks) {
-  if (settings.integrator == "rk4") return detail::track_time(model, start, settings, turns, kicks);
-  return detail::track_azimuth(model, start, settings, turns, kicks);
+                        std::vector<TurnRecord>& turns, std::vector<KickRecord>* kicks,
+                        std::vector<PathPoint>* path) {
+  if (settings.integrator == "rk4") return detail::track_time(model, start, settings, turns, kicks, path);
+  return detail::track_azimuth(model, start, settings, turns, kicks, path);
 }
 
 }  // namespace turnfit

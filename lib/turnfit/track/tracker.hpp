@@ -37,6 +37,15 @@ struct KickRecord {
   GapKick kick;
 };
 
+/// One point of a particle's path, after every integration step (--orbit).
+struct PathPoint {
+  double theta_deg = 0;   ///< azimuth since the start, unwrapped (360 per turn)
+  double r_mm = 0, z_mm = 0;
+  double pr_mrad = 0;     ///< p_r / p
+  double t_ns = 0;
+  double energy_MeV = 0;
+};
+
 /// How a track ended.
 struct TrackEnd {
   bool lost = false;
@@ -83,9 +92,10 @@ ParticleState injection_state(const Injection& inj, double mass_MeV, bool opal_s
 /// Kinetic energy [MeV] of a state.
 double kinetic_energy(const ParticleState& s, double mass_MeV);
 
-/// Tracks one particle; appends its probe crossings to `turns` (and gap kicks to `kicks` if
-/// given). Never throws for physics: losses are reported in the result.
+/// Tracks one particle; appends its probe crossings to `turns` (gap kicks to `kicks` and the
+/// state after every step to `path`, if given). Never throws for physics: losses are reported in the result.
 TrackEnd track_particle(const TrackModel& model, const ParticleState& start, const TrackSettings& settings,
-                        std::vector<TurnRecord>& turns, std::vector<KickRecord>* kicks = nullptr);
+                        std::vector<TurnRecord>& turns, std::vector<KickRecord>* kicks = nullptr,
+                        std::vector<PathPoint>* path = nullptr);
 
 }  // namespace turnfit
