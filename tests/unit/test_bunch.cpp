@@ -154,7 +154,7 @@ TEST_CASE("bunch: results do not depend on the thread count; a zero bunch is the
   for (const auto& o : offs) starts.push_back(offset_state(*mach.injection, mach.particle.mass_MeV, model.rf_MHz, o));
   const BunchResult a = track_bunch(model, starts, st, 1), b = track_bunch(model, starts, st, 2);
   REQUIRE(a.centroids.size() == b.centroids.size());
-  REQUIRE(a.centroids.size() == 11);  // injected at azimuth 0: turn 1 is the first return
+  REQUIRE(a.centroids.size() == 12);  // injected on the probe: turn N is the N-th return
   for (size_t i = 0; i < a.centroids.size(); ++i) {
     CHECK(a.centroids[i].r_mm == b.centroids[i].r_mm);  // bit for bit
     CHECK(a.centroids[i].r_rms_mm == b.centroids[i].r_rms_mm);
@@ -162,7 +162,7 @@ TEST_CASE("bunch: results do not depend on the thread count; a zero bunch is the
   }
   CHECK(a.histograms[0].counts == b.histograms[0].counts);
   const auto total = std::accumulate(a.histograms[0].counts.begin(), a.histograms[0].counts.end(), std::uint64_t{0});
-  CHECK(total + a.histograms[0].outside == 40 * 11);
+  CHECK(total + a.histograms[0].outside == 40 * 12);
   CHECK(a.particle_turns == Approx(40 * 12));
   CHECK(a.lost.empty());
 

@@ -31,17 +31,14 @@ struct AzRhs {
   const TrackModel& m;
   double inv_brho = 0;  // sign(q) / (B rho)
   double inv_v = 0;
-  double lost_r = 0;
   bool operator()(double th, const AzState& y, AzState& dy) {
     const double r = y[0], x = y[1], z = y[2], xz = y[3];
     FieldSample f;
     if (!m.field(r, th, f)) {
-      lost_r = r;
       return false;
     }
     AzimuthDerivs d;
     if (!azimuth_eom(r, x, z, xz, f, inv_brho, inv_v, d)) {
-      lost_r = r;
       return false;
     }
     dy = {d.dr, d.dx, d.dz, d.dxz, d.dt};
@@ -135,10 +132,29 @@ TrackEnd track_azimuth(const TrackModel& m, const ParticleState& s0, const Track
   const double node0 = g.theta_min_rad();
   const double mass = m.mass_MeV;
   auto energy = [&] { return (std::sqrt(1 + P * P) - 1) * mass; };
+  // Losses are reported at the particle's last state (y, th), which the '# end' line repeats.
   auto lose = [&](const std::string& why) {
     end.lost = true;
-    end.status = "lost: " + why + fmt(" at r = %.1f mm, azimuth %.2f deg, turn %.3f", f.lost_r * 1e3,
-                                      std::remainder(th, kTwoPi) * 180 / kPi, (th - th0) / kTwoPi);
+    end.status = "lost: " + why + fmt(" at r = %.1f mm, azimuth %.2f deg, turn %.3f", y[0] * 1e3, wrap_deg(th),
+                                      (th - th0) / kTwoPi);
+  };
+  // A step of h left the map: advance by the largest part of it that stays inside (bisection),
+  // so the loss is reported where the particle reaches the edge, not a step earlier.
+  auto to_edge = [&](double h) {
+    double lo = 0, hi = h;
+    AzState inside = y;
+    for (int k = 0; k < 48; ++k) {
+      const double mid = 0.5 * (lo + hi);
+      AzState t = y;
+      if (step_az(f, th, mid, t)) {
+        lo = mid;
+        inside = t;
+      } else {
+        hi = mid;
+      }
+    }
+    th += lo;
+    y = inside;
   };
 
   while (th < th_end - 1e-13) {
@@ -151,12 +167,16 @@ TrackEnd track_azimuth(const TrackModel& m, const ParticleState& s0, const Track
         const double c = crossing_of(m, e, y[0]);
         if (!std::isnan(c)) e.next = nearest(c, e.next);
       }
-      if (e.next < stop) {
+      // An element exactly at the last azimuth (a probe at the injection azimuth after whole
+      // turns) is crossed within the run: allow rounding of the unwrapped azimuths.
+      const bool at_end = stop >= th_end && e.next <= th_end + 1e-9;
+      if (e.next < stop || at_end) {
         stop = e.next;
         which = static_cast<int>(i);
       }
     }
     if (stop > th && !step_az(f, th, stop - th, y)) {
+      to_edge(stop - th);
       lose("left the field map");
       break;
     }
@@ -172,6 +192,7 @@ TrackEnd track_azimuth(const TrackModel& m, const ParticleState& s0, const Track
       const double d = nearest(c, th) - th;
       if (std::fabs(d) < 1e-14) break;
       if (!step_az(f, th, d, y)) {
+        to_edge(d);
         ok = false;
         break;
       }
@@ -190,10 +211,9 @@ TrackEnd track_azimuth(const TrackModel& m, const ParticleState& s0, const Track
       KickRecord kr;
       kr.gap = e.index;
       kr.turn = e.count;
-      kr.theta_deg = std::remainder(th, kTwoPi) * 180 / kPi;
+      kr.theta_deg = wrap_deg(th);
       kr.kick = m.gaps[e.index].kick(r * cth, r * sth, y[4], mass, m.charge_e, st.gap_physics, px, py, pz);
       if (kr.kick.stopped) {
-        f.lost_r = r;
         if (kicks) kicks->push_back(kr);
         lose("stopped by gap '" + m.gaps[e.index].name() + "'");
         break;
@@ -216,7 +236,7 @@ TrackEnd track_azimuth(const TrackModel& m, const ParticleState& s0, const Track
         tr.s_mm = (s - pl.shift_m) * 1e3;
         tr.t_ns = y[4] * 1e9;
         tr.energy_MeV = energy();
-        tr.phase_deg = m.rf_MHz > 0 ? std::remainder(kTwoPi * m.rf_MHz * 1e6 * y[4], kTwoPi) * 180 / kPi : kNaN;
+        tr.phase_deg = m.rf_MHz > 0 ? wrap_deg(kTwoPi * m.rf_MHz * 1e6 * y[4]) : kNaN;
         turns.push_back(tr);
       }
     }
@@ -226,7 +246,7 @@ TrackEnd track_azimuth(const TrackModel& m, const ParticleState& s0, const Track
   end.turns = (th - th0) / kTwoPi;
   end.energy_MeV = energy();
   end.r_mm = y[0] * 1e3;
-  end.theta_deg = std::remainder(th, kTwoPi) * 180 / kPi;
+  end.theta_deg = wrap_deg(th);
   end.t_ns = y[4] * 1e9;
   return end;
 }

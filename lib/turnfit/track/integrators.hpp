@@ -22,6 +22,13 @@ inline std::string fmt(const char* f, double a, double b = 0, double c = 0) {
   return buf;
 }
 
+/// An angle [rad] in degrees, wrapped to (-180, 180]. (std::remainder rounds ties to even, so
+/// odd multiples of 180 deg would come out as +180 and -180 on alternate turns.)
+inline double wrap_deg(double rad) {
+  const double d = rad * 180 / kPi;
+  return d - 360 * std::ceil((d - 180) / 360);
+}
+
 /// RK4 in azimuth on the map grid (the default integrator).
 TrackEnd track_azimuth(const TrackModel& m, const ParticleState& s0, const TrackSettings& st,
                        std::vector<TurnRecord>& turns, std::vector<KickRecord>* kicks,

@@ -17,13 +17,11 @@ using TState = std::array<double, 6>;  // x, y, z [m], px, py, pz [beta gamma]
 struct TimeRhs {
   const TrackModel& m;
   double k;  // q c^2 / (m c^2) [1 / (T s)] times sign: d(beta gamma)/dt = k (p/gamma) x B
-  double lost_r = 0;
   bool operator()(const TState& s, TState& d) {
     const double r = std::hypot(s[0], s[1]);
     const double th = std::atan2(s[1], s[0]);
     FieldSample f;
     if (!m.field(r, th, f)) {
-      lost_r = r;
       return false;
     }
     const double c = std::cos(th), sn = std::sin(th);
@@ -96,8 +94,9 @@ TrackEnd track_time(const TrackModel& m, const ParticleState& s0, const TrackSet
   auto energy = [&](const TState& s) { return (std::sqrt(1 + s[3] * s[3] + s[4] * s[4] + s[5] * s[5]) - 1) * mass; };
   auto lose = [&](const std::string& why) {
     end.lost = true;
-    end.status = "lost: " + why + fmt(" at r = %.1f mm, azimuth %.2f deg, turn %.3f", f.lost_r * 1e3,
-                                      std::remainder(th, kTwoPi) * 180 / kPi, (th - th0) / kTwoPi);
+    // At the last state inside (y: a failed step leaves it untouched), as the '# end' line.
+    end.status = "lost: " + why + fmt(" at r = %.1f mm, azimuth %.2f deg, turn %.3f", std::hypot(y[0], y[1]) * 1e3,
+                                      wrap_deg(std::atan2(y[1], y[0])), (th - th0) / kTwoPi);
   };
   // OPAL-cycl 2022.1's gap handling (physics.md, "Single-gap cavity"): after a full step that
   // crossed a gap, restart from the step's start, advance by the straight-line estimate
@@ -135,7 +134,6 @@ TrackEnd track_time(const TrackModel& m, const ParticleState& s0, const TrackSet
       kr.kick = gp.kick(r * std::cos(thc), r * std::sin(thc), t + dt1, mass, m.charge_e, st.gap_physics, px, py,
                         y[5]);
       if (kr.kick.stopped) {
-        f.lost_r = r;
         if (kicks) kicks->push_back(kr);
         lose("stopped by gap '" + gp.name() + "'");
         return false;
@@ -188,7 +186,7 @@ TrackEnd track_time(const TrackModel& m, const ParticleState& s0, const TrackSet
         double px = yc[3], py = yc[4];
         kr.kick = gp.kick(yc[0], yc[1], tc, mass, m.charge_e, st.gap_physics, px, py, yc[5]);
         if (kr.kick.stopped) {
-          f.lost_r = std::hypot(yc[0], yc[1]);
+          y = yc;  // the particle ends at the gap
           if (kicks) kicks->push_back(kr);
           lose("stopped by gap '" + gp.name() + "'");
           break;
@@ -228,7 +226,7 @@ TrackEnd track_time(const TrackModel& m, const ParticleState& s0, const TrackSet
         const double tcr = t + u * dt;
         tr.t_ns = tcr * 1e9;
         tr.energy_MeV = energy(y);
-        tr.phase_deg = std::remainder(kTwoPi * m.rf_MHz * 1e6 * tcr, kTwoPi) * 180 / kPi;
+        tr.phase_deg = wrap_deg(kTwoPi * m.rf_MHz * 1e6 * tcr);
         turns.push_back(tr);
       }
     }
@@ -244,7 +242,7 @@ TrackEnd track_time(const TrackModel& m, const ParticleState& s0, const TrackSet
   end.turns = (th - th0) / kTwoPi;
   end.energy_MeV = energy(y);
   end.r_mm = std::hypot(y[0], y[1]) * 1e3;
-  end.theta_deg = std::remainder(th, kTwoPi) * 180 / kPi;
+  end.theta_deg = wrap_deg(th);
   end.t_ns = t * 1e9;
   return end;
 }

@@ -107,6 +107,22 @@ void write_turns_csv(std::ostream& os, const TrackModel& model, const std::vecto
   }
 }
 
+/// Warns about probes that lie wholly outside the field map's radii: they can never record a
+/// turn (not an error: a design variable may have moved the probe there on purpose).
+void warn_probes_outside(const cli::CommonOptions& common, const TrackModel& model) {
+  const double lo = model.map.grid().r_min_m(), hi = model.map.grid().r_max_m();
+  for (const auto& p : model.probes) {
+    // Radii along the probe: sqrt(s^2 + a^2) for s in [s_min, s_max] (moved by the shift).
+    const double s0 = p.s_min_m + p.shift_m, s1 = p.s_max_m + p.shift_m;
+    const double smin = (s0 <= 0 && s1 >= 0) ? 0 : std::min(std::fabs(s0), std::fabs(s1));
+    const double rmin = std::hypot(smin, p.a_m), rmax = std::hypot(std::max(std::fabs(s0), std::fabs(s1)), p.a_m);
+    if (rmax < lo || rmin > hi)
+      cli::warn(common, "probe '" + p.name + "' (r = " + cli::fmt(rmin * 1e3, 6) + " to " + cli::fmt(rmax * 1e3, 6) +
+                            " mm) lies outside the field map (r = " + cli::fmt(lo * 1e3, 6) + " to " +
+                            cli::fmt(hi * 1e3, 6) + " mm): it records no turns");
+  }
+}
+
 /// The path as CSV: one row per integration step.
 void write_path_csv(std::ostream& os, const std::vector<PathPoint>& path, bool provenance) {
   if (provenance) os << cli::provenance_comment();
@@ -143,6 +159,7 @@ int run_track(const TrackOptions& o) {
   ModelOptions mo;
   mo.opal_map = o.opal_compat;
   TrackModel model = make_track_model(m, mo);
+  warn_probes_outside(o.common, model);
   TrackSettings st;
   st.integrator = o.opal_compat ? "rk4"
                   : !o.integrator.empty() ? o.integrator
