@@ -5,26 +5,15 @@
 #include <cmath>
 
 #include "../support.hpp"
+#include "../track_support.hpp"
 #include "turnfit/physics/particle.hpp"
 #include "turnfit/track/tracker.hpp"
 #include "turnfit/trimcoil/trimcoil.hpp"
 
 using namespace turnfit;
+using turnfit::test::uniform_model;
 
 namespace {
-TrackModel uniform_model(double B) {
-  PolarGrid g;
-  g.r_min_mm = 200;
-  g.dr_mm = 20;
-  g.nr = 191;
-  g.ntheta = 90;
-  g.symmetry = 4;
-  TrackModel m;
-  m.map = make_field_map(g, [&](double, double) { return B; }, "uniform");
-  m.rf_MHz = 10;
-  m.harmonic = 1;
-  return m;
-}
 std::string aeo_machine() { return std::string(TURNFIT_TEST_DIR) + "/../examples/psi-ring/aeo.json"; }
 }  // namespace
 

@@ -15,6 +15,7 @@
 #include <vector>
 
 #include "../support.hpp"
+#include "../track_support.hpp"
 #include "turnfit/machine/machine.hpp"
 #include "turnfit/physics/particle.hpp"
 #include "turnfit/rf/cavity.hpp"
@@ -61,22 +62,6 @@ TrackModel iso_model() {
   m.map = make_field_map(g, [](double r, double) { return iso_field(r); }, "isochronous");
   m.rf_MHz = kRfMHz;
   m.harmonic = kH;
-  m.mass_MeV = kMass;
-  return m;
-}
-
-/// A uniform field B [T] from 0.2 to 4 m, 1 deg cells.
-TrackModel uniform_model(double B, double f_rev_MHz) {
-  PolarGrid g;
-  g.r_min_mm = 200;
-  g.dr_mm = 20;
-  g.nr = 191;
-  g.ntheta = 90;
-  g.symmetry = 4;
-  TrackModel m;
-  m.map = make_field_map(g, [&](double, double) { return B; }, "uniform");
-  m.rf_MHz = f_rev_MHz;  // h = 1: the rk4 time step is 1/(steps_per_turn f_rev)
-  m.harmonic = 1;
   m.mass_MeV = kMass;
   return m;
 }
@@ -331,7 +316,8 @@ TEST_CASE("track physics: probe crossings of an off-centred circle in a uniform 
   const double B = 1.0, e = 100;
   const Kinematics k = kinematics(kMass, 1, e);
   const double R = k.brho_Tm / B, omega_c = k.beta * kC / R;
-  TrackModel m = uniform_model(B, omega_c / (2 * kPi) * 1e-6);
+  TrackModel m = test::uniform_model(B, omega_c / (2 * kPi) * 1e-6);  // h = 1: f_rf = f_rev
+  m.mass_MeV = kMass;
   struct P {
     double phi_deg, a_mm, shift_mm;
   };
