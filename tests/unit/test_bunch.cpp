@@ -9,6 +9,7 @@
 
 #include "../support.hpp"
 #include "turnfit/physics/particle.hpp"
+#include "turnfit/io/json.hpp"
 #include "turnfit/track/bunch.hpp"
 
 using namespace turnfit;
@@ -200,4 +201,67 @@ TEST_CASE("bunch: particles that leave the map are counted and reported", "[bunc
   CHECK(r.lost[0].first == 1);
   CHECK_THAT(r.lost[0].second.status, Catch::Contains("left the field map"));
   CHECK(r.centroids.front().particles == 1);
+}
+
+TEST_CASE("bunch machine: N turns give N crossings of the probe on the injection azimuth", "[bunch][track]") {
+  // 11.25 deg map cells divided into 12 steps: the last grid node lands within rounding of the
+  // end of the run, which once stopped a hair short of the probe.
+  Machine mach = load_machine(test_file("machine/bunch/iso.json"));
+  TrackModel model = make_track_model(mach);
+  for (int n : {1, 19, 20, 21, 33}) {
+    for (const char* integ : {"azimuth", "rk4"}) {
+      TrackSettings st;
+      st.integrator = integ;
+      st.turns = n;
+      std::vector<TurnRecord> turns;
+      track_particle(model, injection_state(*mach.injection, mach.particle.mass_MeV), st, turns);
+      INFO(integ << ", " << n << " turns");
+      CHECK(turns.size() == static_cast<size_t>(n));
+    }
+  }
+}
+
+TEST_CASE("bunch: machine-file validation of the bunch block", "[bunch][machine]") {
+  nlohmann::json doc = read_json(test_file("machine/bunch/iso.json"));
+  auto code_with = [&](const std::string& ptr, const nlohmann::json& v, std::string* msg = nullptr) {
+    nlohmann::json d = doc;
+    d[nlohmann::json::json_pointer(ptr)] = v;
+    return error_code([&] { machine_from_json(d, "m.json", test_file("machine/bunch")); }, msg);
+  };
+  std::string msg;
+  CHECK(code_with("/bunch/cutoff_sigma", 0.1, &msg) == 65);
+  CHECK_THAT(msg, Catch::Contains("/bunch/cutoff_sigma"));
+  CHECK(code_with("/bunch/cutoff_sigma", 0) == 0);
+  CHECK(code_with("/bunch/beta_r_m", 0, &msg) == 65);  // an emittance without its beta
+  CHECK_THAT(msg, Catch::Contains("/bunch/beta_r_m"));
+  CHECK(code_with("/bunch/sigma_E_MeV", -1) == 65);
+  CHECK(code_with("/bunch/emittance_x", 1, &msg) == 65);
+  CHECK_THAT(msg, Catch::Contains("unknown key"));
+  CHECK(code_with("/tracking/step_deg", 1e-5) == 65);
+  CHECK(code_with("/tracking/step_deg", 46) == 65);
+  CHECK(code_with("/tracking/step_deg", 0.5) == 0);
+}
+
+TEST_CASE("bunch: histogram bins span the radii of an offset probe", "[bunch]") {
+  TrackModel m;
+  ProbeLine p;
+  p.a_m = 0.6;
+  p.s_min_m = 2.13;
+  p.s_max_m = 4.6;
+  p.step_m = 0.5e-3;
+  p.shift_m = 0.002;
+  m.probes.push_back(p);
+  const auto h = empty_histograms(m);
+  // Recorded radius = true radius - shift, true radius = |(s + shift, a)|.
+  CHECK(h[0].lo_mm == Approx(std::hypot(2132.0, 600.0) - 2).epsilon(1e-12));
+  const double hi = std::hypot(4602.0, 600.0) - 2;
+  CHECK(h[0].counts.size() == static_cast<size_t>(std::ceil((hi - h[0].lo_mm) / 0.5 - 1e-9)));
+  TurnRecord t;
+  t.r_mm = h[0].lo_mm + 0.75;  // second bin
+  std::vector<ProbeHistogram> hs = h;
+  add_crossing(hs, t);
+  CHECK(hs[0].counts[1] == 1);
+  t.r_mm = h[0].lo_mm - 0.1;
+  add_crossing(hs, t);
+  CHECK(hs[0].outside == 1);
 }

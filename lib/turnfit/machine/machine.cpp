@@ -414,6 +414,9 @@ Bunch read_bunch(json& j, const std::string& file, const std::string& dir) {
   nonneg("sigma_E_MeV", b.sigma_E_MeV);
   nonneg("sigma_phase_deg", b.sigma_phase_deg);
   nonneg("cutoff_sigma", b.cutoff_sigma);
+  // Each variate is redrawn until it falls inside the cutoff: below 0.5 sigma most draws fail.
+  if (b.cutoff_sigma > 0 && b.cutoff_sigma < 0.5)
+    throw r.error("cutoff_sigma", "must be 0 (no truncation) or at least 0.5, got " + num(b.cutoff_sigma));
   // An emittance needs its beta function: a sigma from the emittance alone would be a guess.
   if (b.emittance_r_mm_mrad > 0 && !(b.beta_r_m > 0))
     throw r.error("beta_r_m", "must be > 0 when emittance_r_mm_mrad is given");
@@ -431,8 +434,8 @@ Tracking read_tracking(json& j, const std::string& file) {
   if (t.steps_per_turn < 0)
     throw r.error("steps_per_turn", "must be >= 0, got " + num(t.steps_per_turn));
   t.step_deg = r.number("step_deg", 0.0);
-  if (t.step_deg < 0 || t.step_deg > 45)
-    throw r.error("step_deg", "must be in [0, 45] (0: the default), got " + num(t.step_deg));
+  if (t.step_deg < 0 || t.step_deg > 45 || (t.step_deg > 0 && t.step_deg < 1e-4))
+    throw r.error("step_deg", "must be 0 (the default) or in [0.0001, 45], got " + num(t.step_deg));
   t.turns = r.integer("turns", 0);
   if (t.turns < 0) throw r.error("turns", "must be >= 0, got " + num(t.turns));
   return t;

@@ -1,5 +1,5 @@
-// RK4 in azimuth with steps aligned to the field map grid; gap and probe crossings landed on
-// exactly (the default integrator).
+// Fifth-order Runge-Kutta (Dormand-Prince) in azimuth with steps of whole map cells; gap and
+// probe crossings landed on exactly (the default integrator).
 #include <algorithm>
 #include <array>
 #include <cmath>
@@ -159,7 +159,9 @@ TrackEnd track_azimuth(const TrackModel& m, const ParticleState& s0, const Track
 
   while (th < th_end - 1e-13) {
     double node = node0 + dnode * (std::floor((th - node0) / dnode + 1e-9) + 1);
-    double stop = std::min(node, th_end);
+    // A grid node within rounding of the end is the end (else the run would stop a hair
+    // short and miss an element on the last azimuth).
+    double stop = node > th_end - 1e-9 ? th_end : node;
     int which = -1;
     for (size_t i = 0; i < events.size(); ++i) {
       Event& e = events[i];

@@ -128,10 +128,13 @@ void merge_into(Partial& dst, Partial& src) {
 std::vector<ProbeHistogram> empty_histograms(const TrackModel& m) {
   std::vector<ProbeHistogram> h(m.probes.size());
   for (size_t p = 0; p < m.probes.size(); ++p) {
+    // Bins on the recorded radius (turns.csv's r_mm: true radius minus the shift) over the
+    // radii the probe spans; for an offset probe these differ from s by a^2 / (2 s).
     const ProbeLine& pl = m.probes[p];
-    h[p].lo_mm = pl.s_min_m * 1e3;
+    auto recorded_r = [&](double s) { return (std::hypot(s + pl.shift_m, pl.a_m) - pl.shift_m) * 1e3; };
+    h[p].lo_mm = recorded_r(pl.s_min_m);
     h[p].step_mm = pl.step_m * 1e3;
-    const double span = (pl.s_max_m - pl.s_min_m) * 1e3;
+    const double span = recorded_r(pl.s_max_m) - h[p].lo_mm;
     h[p].counts.assign(static_cast<size_t>(std::max(1.0, std::ceil(span / h[p].step_mm - 1e-9))), 0);
   }
   return h;

@@ -37,9 +37,10 @@ std::vector<BunchOffset> read_bunch_file(const std::string& path);
 /// offset to time (EX_DATAERR if a phase offset is asked for without RF).
 ParticleState offset_state(const Injection& inj, double mass_MeV, double rf_MHz, const BunchOffset& o);
 
-/// Counts of probe crossings along a probe, in bins of the probe's step.
+/// Counts of probe crossings along a probe, in bins of the probe's step over the recorded
+/// radii (turns.csv's r_mm) the probe spans.
 struct ProbeHistogram {
-  double lo_mm = 0;    ///< lower edge of the first bin (the probe's s_min)
+  double lo_mm = 0;    ///< lower edge of the first bin (the recorded radius at s_min)
   double step_mm = 0;  ///< bin width (the probe's step)
   std::vector<std::uint64_t> counts;
   std::uint64_t outside = 0;  ///< crossings recorded outside the bins (none for a plain probe)

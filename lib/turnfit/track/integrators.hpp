@@ -29,7 +29,7 @@ inline double wrap_deg(double rad) {
   return d - 360 * std::ceil((d - 180) / 360);
 }
 
-/// RK4 in azimuth on the map grid (the default integrator).
+/// Fifth-order Runge-Kutta in azimuth with grid-aligned steps (the default integrator).
 TrackEnd track_azimuth(const TrackModel& m, const ParticleState& s0, const TrackSettings& st,
                        std::vector<TurnRecord>& turns, std::vector<KickRecord>* kicks,
                        std::vector<PathPoint>* path);

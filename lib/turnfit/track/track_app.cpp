@@ -141,7 +141,8 @@ int run_track(const TrackOptions& o) {
     return 0;
   }
   if (o.machine.empty()) throw usage_error("give a machine file ('-' for stdin)");
-  if (o.machine == "-" && o.dvars == "-") throw usage_error("only one input can be stdin");
+  if ((o.machine == "-") + (o.dvars == "-") + (o.bunch == "-") > 1)
+    throw usage_error("only one input can be stdin (machine, --dvars, --bunch)");
   Machine m = load_machine(o.machine);
   apply_sets(m, o.sets);
   if (!o.dvars.empty()) apply_dvars_file(m, o.dvars);
@@ -234,7 +235,11 @@ int run_track(const TrackOptions& o) {
       if (!m.bunch)
         throw data_error(m.path, 0, "/bunch: a bunch needs a distribution: the machine's bunch block "
                                     "(emittances, sigma_E_MeV, sigma_phase_deg) or --bunch FILE");
-      offs = gaussian_bunch(*m.bunch, static_cast<size_t>(n), o.common.seed);
+      const Bunch& b = *m.bunch;
+      if (b.emittance_r_mm_mrad == 0 && b.emittance_z_mm_mrad == 0 && b.sigma_E_MeV == 0 && b.sigma_phase_deg == 0)
+        cli::warn(o.common, "the bunch block has no spread (emittances, sigma_E_MeV, sigma_phase_deg all 0): " +
+                                std::to_string(n) + " identical particles");
+      offs = gaussian_bunch(b, static_cast<size_t>(n), o.common.seed);
     }
     std::vector<ParticleState> starts;
     starts.reserve(offs.size());
