@@ -23,14 +23,15 @@ inline bool azimuth_eom(double r, double x, double z, double xz, const FieldSamp
   const double s2 = 1 - x * x - xz * xz;
   if (!(s2 > 0)) return false;
   d.s = std::sqrt(s2);
+  const double r_s = r / d.s, inv_s = 1 / d.s;  // one division per evaluation
   d.b = f.bz_T * inv_brho;
   d.br = f.dbz_dr_T_m * inv_brho;
   d.bt = f.dbz_dth_T * inv_brho;
-  d.dr = r * x / d.s;
-  d.dx = d.s - r * d.b + (xz / d.s) * z * d.bt;
-  d.dz = r * xz / d.s;
-  d.dxz = z * (r * d.br - (x / d.s) * d.bt);
-  d.dt = r * inv_v / d.s;
+  d.dr = r_s * x;
+  d.dx = d.s - r * d.b + xz * inv_s * z * d.bt;
+  d.dz = r_s * xz;
+  d.dxz = z * (r * d.br - x * inv_s * d.bt);
+  d.dt = r_s * inv_v;
   return true;
 }
 
