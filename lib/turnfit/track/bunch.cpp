@@ -98,10 +98,11 @@ struct Acc {
   }
 };
 
-/// What a chunk of particles contributes; merged in chunk order.
+/// What a chunk of particles contributes to the sums; merged in chunk order, since floating
+/// point sums depend on their order. (Histogram counts are integers: each worker thread keeps
+/// one set, which keeps memory independent of the bunch size.)
 struct Partial {
   std::vector<std::vector<Acc>> acc;  // [probe][turn - 1]
-  std::vector<ProbeHistogram> hist;
   std::vector<std::pair<size_t, TrackEnd>> lost;
   double turns = 0;
 };
@@ -114,10 +115,6 @@ void merge_into(Partial& dst, Partial& src) {
   for (size_t p = 0; p < src.acc.size(); ++p) {
     if (dst.acc[p].size() < src.acc[p].size()) dst.acc[p].resize(src.acc[p].size());
     for (size_t k = 0; k < src.acc[p].size(); ++k) dst.acc[p][k].merge(src.acc[p][k]);
-  }
-  for (size_t p = 0; p < src.hist.size(); ++p) {
-    for (size_t k = 0; k < src.hist[p].counts.size(); ++k) dst.hist[p].counts[k] += src.hist[p].counts[k];
-    dst.hist[p].outside += src.hist[p].outside;
   }
   for (auto& l : src.lost) dst.lost.push_back(std::move(l));
   dst.turns += src.turns;
@@ -222,16 +219,18 @@ BunchResult track_bunch(const TrackModel& model, const std::vector<ParticleState
                         const std::function<void(size_t)>& progress) {
   const size_t n = starts.size(), nchunks = (n + kChunk - 1) / kChunk;
   std::vector<Partial> parts(nchunks);
+  const unsigned nt = std::max(1u, std::min<unsigned>(threads, static_cast<unsigned>(std::max<size_t>(nchunks, 1))));
+  std::vector<std::vector<ProbeHistogram>> hists(nt, empty_histograms(model));  // per worker
   std::atomic<size_t> next{0}, done{0};
-  auto work = [&] {
+  auto work = [&](unsigned w) {
     std::vector<TurnRecord> turns;
     for (;;) {
       const size_t c = next.fetch_add(1);
       if (c >= nchunks) return;
       Partial& part = parts[c];
       part.acc.resize(model.probes.size());
-      part.hist = empty_histograms(model);
-      for (size_t i = c * kChunk; i < std::min(n, (c + 1) * kChunk); ++i) {
+      const size_t first = c * kChunk, last = std::min(n, first + kChunk);
+      for (size_t i = first; i < last; ++i) {
         turns.clear();
         TrackEnd end = track_particle(model, starts[i], settings, turns);
         part.turns += end.turns;
@@ -239,30 +238,33 @@ BunchResult track_bunch(const TrackModel& model, const std::vector<ParticleState
           auto& row = part.acc[static_cast<size_t>(tr.probe)];
           if (row.size() < static_cast<size_t>(tr.turn)) row.resize(static_cast<size_t>(tr.turn));
           row[static_cast<size_t>(tr.turn - 1)].add(tr);
-          add_crossing(part.hist, tr);
+          add_crossing(hists[w], tr);
         }
         if (end.lost) part.lost.emplace_back(i, std::move(end));
       }
-      const size_t d = done.fetch_add(std::min(n, (c + 1) * kChunk) - c * kChunk) +
-                       (std::min(n, (c + 1) * kChunk) - c * kChunk);
+      const size_t d = done.fetch_add(last - first) + (last - first);
       if (progress) progress(d);
     }
   };
-  const unsigned nt = std::max(1u, std::min<unsigned>(threads, static_cast<unsigned>(std::max<size_t>(nchunks, 1))));
   std::vector<std::thread> pool;
-  for (unsigned k = 1; k < nt; ++k) pool.emplace_back(work);
-  work();
+  for (unsigned k = 1; k < nt; ++k) pool.emplace_back(work, k);
+  work(0);
   for (auto& t : pool) t.join();
 
   Partial all;
   all.acc.resize(model.probes.size());
-  all.hist = empty_histograms(model);
   for (auto& p : parts) merge_into(all, p);
+  std::vector<ProbeHistogram>& hist = hists[0];
+  for (unsigned w = 1; w < nt; ++w)
+    for (size_t p = 0; p < hist.size(); ++p) {
+      for (size_t k = 0; k < hist[p].counts.size(); ++k) hist[p].counts[k] += hists[w][p].counts[k];
+      hist[p].outside += hists[w][p].outside;
+    }
 
   BunchResult res;
   res.particles = n;
   res.particle_turns = all.turns;
-  res.histograms = std::move(all.hist);
+  res.histograms = std::move(hist);
   res.lost = std::move(all.lost);
   for (size_t p = 0; p < all.acc.size(); ++p)
     for (size_t k = 0; k < all.acc[p].size(); ++k) {
