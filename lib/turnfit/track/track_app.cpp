@@ -46,26 +46,39 @@ void add_track_options(CLI::App& app, TrackOptions& o) {
   cli::add_common_options(app, o.common, cli::kOutput | cli::kThreads | cli::kSeed);
 }
 
+namespace {
+/// The seven turns.csv columns (architecture.md) of one crossing, or of a bunch's centroid;
+/// the phase is empty without RF. No line end: a bunch row goes on.
+void write_crossing(std::ostream& os, const std::string& probe, int turn, double r_mm, double s_mm, double t_ns,
+                    double energy_MeV, double phase_deg) {
+  char buf[256];
+  std::snprintf(buf, sizeof buf, "%s,%d,%.6f,%.6f,%.6f,%.8f,", probe.c_str(), turn, r_mm, s_mm, t_ns, energy_MeV);
+  os << buf;
+  if (std::isfinite(phase_deg)) {
+    std::snprintf(buf, sizeof buf, "%.5f", phase_deg);
+    os << buf;
+  }
+}
+
+/// The '# end' line of a particle: how its track ended.
+void write_end(std::ostream& os, size_t particle, const TrackEnd& e) {
+  char buf[200];
+  std::snprintf(buf, sizeof buf, "# end particle=%zu turns=%.4f energy_MeV=%.6f r_mm=%.4f t_ns=%.3f status=", particle,
+                e.turns, e.energy_MeV, e.r_mm, e.t_ns);
+  os << buf << e.status << "\n";
+}
+}  // namespace
+
 void write_bunch_csv(std::ostream& os, const TrackModel& model, const BunchResult& res, bool provenance) {
   if (provenance) os << cli::provenance_comment();
   os << "probe,turn,r_mm,s_mm,t_ns,energy_MeV,phase_deg,particles,r_rms_mm\n";
-  char buf[320];
+  char buf[200];
   for (const auto& c : res.centroids) {
-    std::snprintf(buf, sizeof buf, "%s,%d,%.6f,%.6f,%.6f,%.8f,", model.probes[c.probe].name.c_str(), c.turn, c.r_mm,
-                  c.s_mm, c.t_ns, c.energy_MeV);
-    os << buf;
-    if (std::isfinite(c.phase_deg)) {
-      std::snprintf(buf, sizeof buf, "%.5f", c.phase_deg);
-      os << buf;
-    }
+    write_crossing(os, model.probes[c.probe].name, c.turn, c.r_mm, c.s_mm, c.t_ns, c.energy_MeV, c.phase_deg);
     std::snprintf(buf, sizeof buf, ",%llu,%.6f\n", static_cast<unsigned long long>(c.particles), c.r_rms_mm);
     os << buf;
   }
-  for (const auto& [i, e] : res.lost) {
-    std::snprintf(buf, sizeof buf, "# end particle=%zu turns=%.4f energy_MeV=%.6f r_mm=%.4f t_ns=%.3f status=", i,
-                  e.turns, e.energy_MeV, e.r_mm, e.t_ns);
-    os << buf << e.status << "\n";
-  }
+  for (const auto& [i, e] : res.lost) write_end(os, i, e);
   std::snprintf(buf, sizeof buf, "# bunch particles=%zu lost=%zu particle_turns=%.4f\n", res.particles,
                 res.lost.size(), res.particle_turns);
   os << buf;
@@ -89,22 +102,11 @@ void write_turns_csv(std::ostream& os, const TrackModel& model, const std::vecto
                      const std::vector<TrackEnd>& ends, bool provenance) {
   if (provenance) os << cli::provenance_comment();
   os << "probe,turn,r_mm,s_mm,t_ns,energy_MeV,phase_deg\n";
-  char buf[256];
   for (const auto& t : turns) {
-    std::snprintf(buf, sizeof buf, "%s,%d,%.6f,%.6f,%.6f,%.8f,", model.probes[t.probe].name.c_str(), t.turn, t.r_mm,
-                  t.s_mm, t.t_ns, t.energy_MeV);
-    os << buf;
-    if (std::isfinite(t.phase_deg)) {  // empty without RF
-      std::snprintf(buf, sizeof buf, "%.5f", t.phase_deg);
-      os << buf;
-    }
+    write_crossing(os, model.probes[t.probe].name, t.turn, t.r_mm, t.s_mm, t.t_ns, t.energy_MeV, t.phase_deg);
     os << '\n';
   }
-  for (size_t i = 0; i < ends.size(); ++i) {
-    std::snprintf(buf, sizeof buf, "# end particle=%zu turns=%.4f energy_MeV=%.6f r_mm=%.4f t_ns=%.3f status=", i,
-                  ends[i].turns, ends[i].energy_MeV, ends[i].r_mm, ends[i].t_ns);
-    os << buf << ends[i].status << "\n";
-  }
+  for (size_t i = 0; i < ends.size(); ++i) write_end(os, i, ends[i]);
 }
 
 /// Warns about probes that lie wholly outside the field map's radii: they can never record a
