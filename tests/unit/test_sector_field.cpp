@@ -2,6 +2,8 @@
 #include <catch2/catch.hpp>
 
 #include <cmath>
+#include <functional>
+#include <nlohmann/json.hpp>
 
 #include "../support.hpp"
 #include "turnfit/field/sector_field.hpp"
@@ -25,13 +27,30 @@ SectorFieldSpec ring_like() {
 }
 }  // namespace
 
-TEST_CASE("sector field: radial tables are linear between nodes and flat beyond", "[field][sector]") {
-  RadialTable t{{1000, 2000, 4000}, {1, 3, 2}};
-  CHECK(t.at(500) == 1);
-  CHECK(t.at(1500) == Approx(2));
-  CHECK(t.at(3000) == Approx(2.5));
-  CHECK(t.at(5000) == 2);
+TEST_CASE("sector field: radial tables are natural cubic splines, straight beyond the ends", "[field][sector]") {
+  RadialTable t{{1000, 2000, 2500, 4000}, {1, 3, 2.5, 2}};
+  // Through the nodes.
+  for (size_t i = 0; i < t.r_mm.size(); ++i) CHECK(t.at(t.r_mm[i]) == Approx(t.value[i]).epsilon(1e-14));
+  // C2 inside: one-sided second differences agree at an interior node; slope() is the derivative.
+  const double h = 1e-2;
+  for (double r : {2000.0, 2500.0}) {
+    const double left = (t.at(r) - 2 * t.at(r - h) + t.at(r - 2 * h)) / (h * h);
+    const double right = (t.at(r + 2 * h) - 2 * t.at(r + h) + t.at(r)) / (h * h);
+    CHECK(left == Approx(right).margin(1e-6));
+  }
+  for (double r : {1200.0, 2200.0, 3900.0})
+    CHECK(t.slope(r) == Approx((t.at(r + h) - t.at(r - h)) / (2 * h)).epsilon(1e-7));
+  // Natural ends: no curvature there, so the straight continuation is C2 too.
+  const std::vector<double> m2 = t.curvatures();
+  CHECK(m2.front() == 0);
+  CHECK(m2.back() == 0);
+  CHECK(t.at(500) == Approx(1 - 500 * t.slope(1000)).epsilon(1e-14));
+  CHECK(t.at(5000) == Approx(2 + 1000 * t.slope(4000)).epsilon(1e-14));
+  // A spline reproduces straight lines exactly, whatever the node spacing.
+  RadialTable line{{1000, 1300, 2000, 3700}, {2, 2.6, 4, 7.4}};
+  for (double r = 800; r < 4000; r += 77) CHECK(line.at(r) == Approx(2 + 0.002 * (r - 1000)).epsilon(1e-13));
   CHECK(RadialTable{{1000}, {7}}.at(3000) == 7);
+  CHECK(RadialTable{{1000}, {7}}.slope(3000) == 0);
 }
 
 TEST_CASE("sector field: the shape is 1 in a magnet, 0 in a valley, 1/2 on an edge", "[field][sector]") {
@@ -70,13 +89,65 @@ TEST_CASE("sector field: the mean of the shape over a sector is the magnet's sha
 
 TEST_CASE("sector field: a spiral turns the centre line by tan(xi) ln(r / r0)", "[field][sector]") {
   SectorFieldSpec s = ring_like();
-  s.spiral_deg = 30;
+  s.spiral_deg = {{2000}, {30}};
   s.spiral_r0_mm = 2000;
   const double r = 2000 * std::exp(0.5), centre = std::tan(30 * 3.14159265358979323846 / 180) * 0.5 * 180 /
                                                       3.14159265358979323846;
   CHECK(sector_shape(s, 2000, 0) == Approx(1).margin(1e-12));
   for (double d : {1.0, 5.0, 9.0}) CHECK(sector_shape(s, r, centre + d) == Approx(sector_shape(s, r, centre - d)).margin(1e-13));
   CHECK(sector_shape(s, r, centre + 0.5 * s.width_deg.at(r)) == Approx(0.5).margin(1e-12));
+}
+
+TEST_CASE("sector field: a spiral table turns the centre line at d theta_c / dr = tan(xi(r)) / r", "[field][sector]") {
+  SectorFieldSpec s = ring_like();
+  s.spiral_deg = {{1800, 2500, 3500, 4500}, {0, 5, 20, 35}};
+  s.spiral_r0_mm = 2000;
+  CHECK(sector_centre_deg(s, 2000) == 0);
+  const double d2r = 3.14159265358979323846 / 180;
+  for (double r : {1900.0, 2300.0, 3000.0, 4400.0, 4800.0}) {
+    const double h = 0.01;
+    const double dc = (sector_centre_deg(s, r + h) - sector_centre_deg(s, r - h)) / (2 * h) * d2r;
+    CHECK(dc == Approx(std::tan(s.spiral_deg.at(r) * d2r) / r).epsilon(1e-8));
+  }
+  // The magnet stays symmetric about the turned centre line.
+  const double r = 4000, c = sector_centre_deg(s, r);
+  for (double d : {2.0, 8.0, 15.0}) CHECK(sector_shape(s, r, c + d) == Approx(sector_shape(s, r, c - d)).margin(1e-13));
+}
+
+TEST_CASE("sector field: JSON round trip gives the same field bit for bit", "[field][sector]") {
+  SectorFieldSpec s = ring_like();
+  s.spiral_deg = {{1800, 3000, 4500}, {0, 12.5, 31}};
+  s.spiral_r0_mm = 2000;
+  s.valley_fraction = 0.03;
+  s.description = "round trip";
+  const nlohmann::json doc = sector_spec_to_json(s);
+  const SectorFieldSpec back = sector_spec_from_json(nlohmann::json::parse(doc.dump()), "mem");
+  const PolarFieldMap a = make_sector_field(s), b = make_sector_field(back);
+  REQUIRE(a.values().size() == b.values().size());
+  for (size_t i = 0; i < a.values().size(); ++i) REQUIRE(a.values()[i] == b.values()[i]);
+  CHECK(back.description == "round trip");
+}
+
+TEST_CASE("sector field: JSON errors name the key path", "[field][sector]") {
+  const nlohmann::json good = sector_spec_to_json(ring_like());
+  std::string msg;
+  auto bad = [&](const std::function<void(nlohmann::json&)>& change) {
+    nlohmann::json d = good;
+    change(d);
+    return error_code([&] { sector_spec_from_json(d, "spec.json"); }, &msg);
+  };
+  CHECK(bad([](nlohmann::json& d) { d["fringe_cm"] = 4; }) == 65);
+  CHECK_THAT(msg, Catch::Contains("spec.json") && Catch::Contains("/fringe_cm") && Catch::Contains("fringe_mm"));
+  CHECK(bad([](nlohmann::json& d) { d["hill"]["field_T"] = {1.5}; }) == 65);
+  CHECK_THAT(msg, Catch::Contains("/hill/field_T"));
+  CHECK(bad([](nlohmann::json& d) { d["width"]["r_mm"] = {3000, 2000}; }) == 65);
+  CHECK_THAT(msg, Catch::Contains("/width/r_mm/1"));
+  CHECK(bad([](nlohmann::json& d) { d["format"] = "turnfit-machine/1"; }) == 65);
+  CHECK_THAT(msg, Catch::Contains("/format"));
+  CHECK(bad([](nlohmann::json& d) { d["grid"]["nr"] = 2.5; }) == 65);
+  CHECK_THAT(msg, Catch::Contains("/grid/nr"));
+  CHECK(bad([](nlohmann::json& d) { d["width"]["width_deg"] = {50, 50}; }) == 65);
+  CHECK_THAT(msg, Catch::Contains("width_deg"));
 }
 
 TEST_CASE("sector field: sampled maps hold B_hill (v + (1 - v) S) at the nodes", "[field][sector]") {

@@ -2,12 +2,15 @@
 #pragma once
 
 #include <CLI/CLI.hpp>
+#include <optional>
 #include <ostream>
 #include <string>
 #include <vector>
 
 #include "turnfit/cli/common.hpp"
+#include "turnfit/field/sector_field.hpp"
 #include "turnfit/orbit/closed_orbit.hpp"
+#include "turnfit/orbit/isochronize.hpp"
 
 namespace turnfit {
 
@@ -30,11 +33,16 @@ struct OrbitOptions {
   bool strict = false;                 ///< exit 65 if any energy has no closed orbit
   std::string write_map;               ///< --write-map: also write the loaded (scaled) map here
   std::string write_map_format = "turnfit";
+  std::string sector_field;            ///< --sector-field: analytic field spec (turnfit-sector-field/1)
+  bool isochronize = false;            ///< --isochronize: adjust the spec's hill field first
+  std::string write_spec;              ///< --write-spec: the (isochronized) spec goes here
 };
 
 /// The field and settings an orbit run resolved from its options and machine file.
 struct OrbitJob {
   PolarFieldMap map;
+  std::optional<SectorFieldSpec> spec;  ///< the analytic field, when --sector-field gave one
+  IsochronizeSettings iso;              ///< from the spec's "isochronize" block and the options
   OrbitSettings settings;
   std::vector<double> energies;  ///< empty when only a map is written
 };
