@@ -14,6 +14,7 @@ namespace {
 const char* const kTools[][2] = {
     {"orbit", "equilibrium orbits, tunes and isochronism of a field map"},
     {"track", "accelerated orbits: where each turn crosses each probe"},
+    {"synth", "synthetic probe profiles and trim coil phase scans from a truth machine"},
 };
 
 void usage(std::ostream& os) {

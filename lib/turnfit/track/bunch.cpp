@@ -216,7 +216,7 @@ ParticleState offset_state(const Injection& inj, double mass_MeV, double rf_MHz,
 
 BunchResult track_bunch(const TrackModel& model, const std::vector<ParticleState>& starts,
                         const TrackSettings& settings, unsigned threads,
-                        const std::function<void(size_t)>& progress) {
+                        const std::function<void(size_t)>& progress, const CrossingSink& sink) {
   const size_t n = starts.size(), nchunks = (n + kChunk - 1) / kChunk;
   std::vector<Partial> parts(nchunks);
   const unsigned nt = std::max(1u, std::min<unsigned>(threads, static_cast<unsigned>(std::max<size_t>(nchunks, 1))));
@@ -240,6 +240,7 @@ BunchResult track_bunch(const TrackModel& model, const std::vector<ParticleState
           row[static_cast<size_t>(tr.turn - 1)].add(tr);
           add_crossing(hists[w], tr);
         }
+        if (sink) sink(i, turns);
         if (end.lost) part.lost.emplace_back(i, std::move(end));
       }
       const size_t d = done.fetch_add(last - first) + (last - first);

@@ -70,11 +70,16 @@ struct BunchResult {
   double particle_turns = 0;                  ///< revolutions tracked, summed over particles
 };
 
+/// Receives each particle's probe crossings (its index and its records in time order), for
+/// callers that need more than centroids and histograms (turnfit-synth's wire signals).
+using CrossingSink = std::function<void(size_t particle, const std::vector<TurnRecord>& turns)>;
+
 /// Tracks every start state on `threads` threads. Results do not depend on the thread count
 /// (particles are reduced in fixed chunks, merged in order). `progress`, if given, is called
-/// from worker threads with the number of particles done.
+/// from worker threads with the number of particles done. `sink`, if given, is called from
+/// worker threads, concurrently for different particles, once per particle.
 BunchResult track_bunch(const TrackModel& model, const std::vector<ParticleState>& starts,
                         const TrackSettings& settings, unsigned threads,
-                        const std::function<void(size_t)>& progress = {});
+                        const std::function<void(size_t)>& progress = {}, const CrossingSink& sink = {});
 
 }  // namespace turnfit

@@ -1,0 +1,126 @@
+// Synthetic measurements from a "truth" machine: wire-probe profiles of a tracked bunch with a
+// detector model, and trim coil phase-shift scans (Adam & Joho 1974), as test and demo data.
+#pragma once
+
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include "turnfit/machine/machine.hpp"
+#include "turnfit/track/bunch.hpp"
+#include "turnfit/track/tracker.hpp"
+
+namespace turnfit {
+
+/// The wire probe and its electronics. Signals are in nA of beam current intercepted by the
+/// wire (input-referred): the wire's own gain (secondary emission) scales signal and noise
+/// alike and drops out of the normalized profile.
+struct WireModel {
+  double current_uA = 88;         ///< beam current; the paper's profiles: 88, repeatability runs 58 and 108
+  double wire_mm = 0.033;         ///< width of the wire across the beam (carbon fibre)
+  double electronic_nA = 0.5;     ///< rms electronic noise per reading, independent of the signal
+  double shot_nA = 0.05;          ///< shot-like noise: variance shot_nA * signal (nA^2)
+  double baseline_nA = 2;         ///< amplifier offset added to every reading
+  double baseline_drift_nA = 1;   ///< rms of the baseline's linear drift over one scan (random per run)
+};
+
+/// Run-to-run machine drift: each run (seed) changes these settings by Gaussian amounts with
+/// these rms values, so two runs of the same machine differ as two measurements do.
+struct DriftModel {
+  double r_mm = 0.5;          ///< injection radius (beam centring from the injector and its line)
+  double pr_mrad = 0.25;      ///< injection angle p_r / p
+  double voltage_rel = 1e-4;  ///< all cavity voltages together, relative (RF amplitude regulation)
+};
+
+/// One run's drift: the amounts drawn from a DriftModel.
+struct Drift {
+  double dr_mm = 0;
+  double dpr_mrad = 0;
+  double dvoltage_rel = 0;
+};
+
+/// The phase-probe scan of the trim coils.
+struct PhaseModel {
+  double step_mm = 25;         ///< radial spacing of the phase probes
+  double azimuth_deg = 0;      ///< azimuth of the radial line the phase probes sit on
+  double noise_deg = 0.15;     ///< rms noise of one phase reading
+  double excitation_T = 5e-4;  ///< test excitation added to the coil's nominal bmax_T
+};
+
+/// Everything a synthesis needs besides the machine.
+struct SynthSettings {
+  TrackSettings track;      ///< integrator and turn count for every track
+  size_t particles = 2000;  ///< bunch size for the profiles
+  std::uint64_t seed = 1;   ///< one run: bunch, drift, noise
+  unsigned threads = 1;
+  WireModel wire;
+  DriftModel drift;
+  PhaseModel phase;
+  bool profiles = true;     ///< make probe profiles
+  bool phases = true;       ///< make phase scans (needs RF and a fundamental-harmonic cavity)
+};
+
+/// One probe's synthetic measurement.
+struct SynthProfile {
+  std::string probe;
+  double step_mm = 0;
+  std::vector<double> position_mm;  ///< wire positions (the recorded radius, as track --histograms)
+  std::vector<double> signal_nA;    ///< noiseless intercepted current
+  std::vector<double> intensity;    ///< measured: signal, noise and baseline, divided by its maximum
+  double baseline_nA = 0;           ///< offset of this scan
+  double drift_nA = 0;              ///< baseline change from the first reading to the last
+  double scale_nA = 0;              ///< the maximum the intensity was divided by
+};
+
+/// One trim coil's phase-shift scan: delta sin(phi) at the phase probes.
+struct PhaseScan {
+  std::string coil;
+  double nominal_T = 0;     ///< the coil's bmax_T in the reference run
+  double excitation_T = 0;  ///< added in the excited run
+  std::vector<double> r_mm, dsinphi;
+  std::vector<double> dsinphi_true;  ///< without phase-probe noise
+};
+
+/// What a synthesis produced.
+struct SynthResult {
+  Drift drift;
+  std::vector<SynthProfile> profiles;
+  std::vector<PhaseScan> phases;
+  std::vector<Centroid> centroids;  ///< the true turn positions (bunch means) of this run
+  std::vector<std::string> probe_names;
+  size_t particles = 0;
+  size_t lost = 0;
+};
+
+/// The drift of run `seed` (independent of the bunch and the noise drawn from the same seed).
+Drift draw_drift(const DriftModel& model, std::uint64_t seed);
+
+/// Applies a drift to a machine: injection radius and angle, every cavity's voltage.
+/// A machine without injection keeps its (missing) injection; EX_DATAERR if the result is invalid.
+void apply_drift(Machine& m, const Drift& d);
+
+/// Wire signal [nA] at the positions for crossings r_mm of the probe, each standing for a
+/// 1/particles share of the beam and smoothed by the bandwidth of its turn (bandwidth_mm,
+/// indexed like r_mm): the share of a Gaussian of that width inside the wire's width.
+std::vector<double> wire_signal(const std::vector<double>& position_mm, const std::vector<double>& r_mm,
+                                const std::vector<double>& bandwidth_mm, size_t particles, const WireModel& w);
+
+/// Silverman's rule-of-thumb bandwidth (Silverman 1986, Eq. 3.28) for n crossings of rms
+/// spread sigma_mm: the smoothing that stands the macro-particles in for the continuous beam.
+double silverman_bandwidth(double sigma_mm, std::uint64_t n);
+
+/// The measured profile: signal plus shot-like and electronic noise plus baseline, divided by its
+/// maximum. `stream` separates the noise of different probes drawn from one seed.
+void measure_profile(SynthProfile& p, const WireModel& w, std::uint64_t seed, std::uint64_t stream);
+
+/// The phase scan of trim coil `coil` (index into m.trimcoils): the reference particle tracked
+/// with the coil at its nominal and at nominal + excitation; beam phase from the main RF crest
+/// interpolated onto the phase probes' radii.
+PhaseScan phase_scan(const Machine& m, size_t coil, const TrackSettings& st, const PhaseModel& pm,
+                     std::uint64_t seed);
+
+/// The whole synthesis of one run (seed) on a truth machine: draws and applies the run's drift,
+/// tracks the bunch for the profiles and the reference particle for the phase scans.
+SynthResult synthesize(const Machine& truth, const SynthSettings& s);
+
+}  // namespace turnfit

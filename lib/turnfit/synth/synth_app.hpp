@@ -1,0 +1,52 @@
+// turnfit-synth as a library function: options, run, the files it writes.
+#pragma once
+
+#include <CLI/CLI.hpp>
+#include <nlohmann/json.hpp>
+#include <ostream>
+#include <string>
+#include <vector>
+
+#include "turnfit/cli/common.hpp"
+#include "turnfit/synth/synth.hpp"
+
+namespace turnfit {
+
+/// Everything turnfit-synth is asked to do.
+struct SynthOptions {
+  cli::CommonOptions common;
+  std::string machine;
+  std::vector<std::string> sets;
+  std::string dvars;
+  std::string out;            ///< --out DIR
+  int particles = -1;         ///< -1: the machine's bunch.particles, else 2000
+  double turns = 0;           ///< 0: the machine's tracking.turns
+  std::string integrator;     ///< empty: the machine's, else "azimuth"
+  double step_deg = 0;        ///< 0: the machine's, else the tracker's default
+  WireModel wire;
+  DriftModel drift;
+  bool no_drift = false;
+  PhaseModel phase;
+  bool no_phase = false;
+  bool no_profiles = false;
+};
+
+/// Registers turnfit-synth's options.
+void add_synth_options(CLI::App& app, SynthOptions& o);
+
+/// Runs turnfit-synth; returns the exit code.
+int run_synth(const SynthOptions& o);
+
+/// Writes one synthetic probe profile (position_mm,intensity with '#' metadata lines).
+void write_synth_profile(std::ostream& os, const SynthProfile& p, const WireModel& w, std::uint64_t seed,
+                         bool provenance);
+
+/// Writes one phase scan (r_mm,dsinphi with '#' metadata lines).
+void write_phase_scan(std::ostream& os, const PhaseScan& s, const PhaseModel& pm, std::uint64_t seed,
+                      bool provenance);
+
+/// The hidden values of a synthesis: the truth machine's design variables and effects, the
+/// run's drift, seed and current, the measurement model and the true turn positions.
+nlohmann::json truth_json(const Machine& truth, const SynthSettings& s, const SynthResult& r);
+
+}  // namespace turnfit
