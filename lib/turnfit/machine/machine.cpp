@@ -441,18 +441,205 @@ Tracking read_tracking(json& j, const std::string& file) {
   return t;
 }
 
-json read_effects(json& a, const std::string& file) {
+// The effect types and the keys each takes ("type" and a free "description" besides).
+const std::vector<std::pair<std::string, std::vector<std::string>>>& effect_types() {
+  static const std::vector<std::pair<std::string, std::vector<std::string>>> types = {
+      {"field-harmonic", {"n", "amplitude_T", "phase_deg", "r_mm", "width_mm"}},
+      // The older name of field-harmonic (machine files written before effects were tracked).
+      {"harmonic-error", {"n", "amplitude_T", "phase_deg", "r_mm", "width_mm"}},
+      {"sector-strength", {"sector", "relative", "transition_deg"}},
+      {"trimcoil-sectors", {"coils", "sectors"}},
+      {"gap-bow", {"cavity", "sagitta_mm"}},
+      {"voltage-tilt", {"cavity", "slope", "pivot_rho_n"}},
+      {"probe-offset", {"probe", "dphi_deg", "da_mm", "ds_mm", "pivot_s_mm"}},
+      {"injection-offset", {"dr_mm", "dpr_mrad", "dz_mm", "dpz_mrad", "dE_MeV", "dphase_deg"}}};
+  return types;
+}
+
+// A limit on a parameter: |v| <= lim, with a message that says why the limit exists.
+void check_abs(const Reader& r, const std::string& key, double v, double lim, const std::string& why) {
+  if (!(std::fabs(v) <= lim))
+    throw r.error(key, "must be within [-" + num(lim) + ", " + num(lim) + "]" + why + ", got " + num(v));
+}
+
+// Validates `effects` (turnfit-machine(5) "EFFECTS") against the machine read so far: every
+// type's keys, units and ranges, and the cavities, probes and coils they name.
+Effects read_effects(json& a, const std::string& file, const Machine& m) {
   if (!a.is_array())
     throw data_error(file, 0, "/effects: expected a JSON array, got " + Reader::type_name(a));
+  Effects fx;
+  std::map<std::string, std::string> seen;  // "kind:target" -> path of the first effect on it
+  auto once = [&](const Reader& r, const std::string& key, const std::string& target, const std::string& what) {
+    auto [it, fresh] = seen.emplace(what + ":" + target, r.at(key));
+    if (!fresh) throw r.error(key, "a second " + what + " '" + target + "' (the first is " + it->second + ")");
+  };
+  const int sym = m.field.symmetry;
+  auto sector_of = [&](const Reader& r, const json& j, const std::string& where) {
+    const int k = r.as_integer(j, where);
+    if (k < 1 || (sym > 0 && k > sym))
+      throw data_error(file, 0, where + ": sector " + std::to_string(k) + " out of range (" +
+                                    (sym > 0 ? "1.." + std::to_string(sym) : std::string(">= 1")) + ")");
+    return k;
+  };
+  auto cavity_named = [&](Reader& r) -> const Cavity& {
+    const std::string name = r.string("cavity");
+    for (const auto& c : m.cavities)
+      if (c.name == name) return c;
+    throw r.error("cavity", "no cavity named '" + name + "'");
+  };
   for (size_t i = 0; i < a.size(); ++i) {
-    std::string where = "/effects/" + std::to_string(i);
+    const std::string where = "/effects/" + std::to_string(i);
     if (!a[i].is_object())
       throw data_error(file, 0, where + ": expected a JSON object, got " + Reader::type_name(a[i]));
     if (!a[i].contains("type")) throw data_error(file, 0, where + "/type: missing required key");
     if (!a[i]["type"].is_string() || a[i]["type"].get<std::string>().empty())
       throw data_error(file, 0, where + "/type: expected a non-empty string");
+    const std::string type = a[i]["type"].get<std::string>();
+    const auto& types = effect_types();
+    auto it = std::find_if(types.begin(), types.end(), [&](const auto& t) { return t.first == type; });
+    if (it == types.end()) {
+      std::vector<std::string> names;
+      std::string list;
+      for (const auto& t : types)
+        if (t.first != "harmonic-error") names.push_back(t.first), list += (list.empty() ? "" : ", ") + t.first;
+      throw data_error(file, 0, where + "/type: unknown effect type '" + type + "'" +
+                                    unknown_key_hint(type, names) + " (known: " + list + ")");
+    }
+    std::vector<std::string> known = it->second;
+    known.push_back("type");
+    known.push_back("description");
+    Reader r(a[i], file, where, known);
+    r.string("description", std::string());
+    if (type == "field-harmonic" || type == "harmonic-error") {
+      FieldHarmonicEffect e;
+      e.index = i;
+      e.n = r.integer("n", 1);
+      if (e.n < 0 || e.n > 64) throw r.error("n", "must be in 0..64, got " + num(e.n));
+      e.amplitude_T = r.number("amplitude_T");
+      check_abs(r, "amplitude_T", e.amplitude_T, 0.5, " (an error field, not a magnet)");
+      e.phase_deg = r.number("phase_deg", 0.0);
+      // Both or neither: a centre without a width (or the reverse) is a half-given bump.
+      if (r.has("r_mm") != r.has("width_mm"))
+        throw r.error(r.has("r_mm") ? "width_mm" : "r_mm",
+                      "missing required key (r_mm and width_mm go together; leave both out for every radius)");
+      if (r.has("r_mm")) {
+        e.r_mm = r.number("r_mm");
+        if (!(e.r_mm >= 0)) throw r.error("r_mm", "must be >= 0, got " + num(e.r_mm));
+        e.width_mm = r.number("width_mm");
+        if (!(e.width_mm > 0)) throw r.error("width_mm", "must be > 0, got " + num(e.width_mm));
+      }
+      fx.field_harmonics.push_back(e);
+    } else if (type == "sector-strength") {
+      SectorStrengthEffect e;
+      e.index = i;
+      if (!r.has("sector")) throw r.error("sector", "missing required key");
+      e.sector = sector_of(r, r.raw("sector"), r.at("sector"));
+      once(r, "sector", std::to_string(e.sector), "sector-strength on sector");
+      e.relative = r.number("relative");
+      check_abs(r, "relative", e.relative, 0.1, " (a fraction: 0.001 is 0.1 %)");
+      e.transition_deg = r.number("transition_deg", 0.0);
+      const double pitch = sym > 0 ? 360.0 / sym : 360.0;
+      if (e.transition_deg < 0 || e.transition_deg > pitch)
+        throw r.error("transition_deg", "must be in [0, " + num(pitch) + "] (0: a quarter of the sector pitch), got " +
+                                            num(e.transition_deg));
+      fx.sector_strengths.push_back(e);
+    } else if (type == "trimcoil-sectors") {
+      TrimcoilSectorsEffect e;
+      e.index = i;
+      for (const char* k : {"coils", "sectors"})
+        if (!r.has(k) || !r.raw(k).is_array() || r.raw(k).empty())
+          throw r.error(k, r.has(k) ? "expected a non-empty array" : "missing required key");
+      const json& cs = r.raw("coils");
+      for (size_t c = 0; c < cs.size(); ++c) {
+        const std::string at = r.at("coils") + "/" + std::to_string(c);
+        if (!cs[c].is_string()) throw data_error(file, 0, at + ": expected a coil name, got " + Reader::type_name(cs[c]));
+        const std::string name = cs[c].get<std::string>();
+        if (std::none_of(m.trimcoils.begin(), m.trimcoils.end(), [&](const TrimCoil& t) { return t.name == name; }))
+          throw data_error(file, 0, at + ": no trim coil named '" + name + "'");
+        auto [s, fresh] = seen.emplace("coil:" + name, at);
+        if (!fresh) throw data_error(file, 0, at + ": trim coil '" + name + "' is restricted already (" + s->second + ")");
+        e.coils.push_back(name);
+      }
+      const json& ss = r.raw("sectors");
+      for (size_t k = 0; k < ss.size(); ++k) {
+        const std::string at = r.at("sectors") + "/" + std::to_string(k);
+        const int sec = sector_of(r, ss[k], at);
+        if (std::find(e.sectors.begin(), e.sectors.end(), sec) != e.sectors.end())
+          throw data_error(file, 0, at + ": sector " + std::to_string(sec) + " listed twice");
+        e.sectors.push_back(sec);
+      }
+      fx.trimcoil_sectors.push_back(e);
+    } else if (type == "gap-bow") {
+      GapBowEffect e;
+      e.index = i;
+      const Cavity& c = cavity_named(r);
+      e.cavity = c.name;
+      once(r, "cavity", c.name, "gap-bow on cavity");
+      e.sagitta_mm = r.number("sagitta_mm");
+      // A parabola of sagitta s over a chord L has end slopes 4 s / L: at most 0.4, where the
+      // chord-projected voltage profile and the local gap normal are still good approximations.
+      check_abs(r, "sagitta_mm", e.sagitta_mm, 0.1 * (c.rmax_mm - c.rmin_mm),
+                " (a tenth of the gap length " + num(c.rmax_mm - c.rmin_mm) + " mm)");
+      fx.gap_bows.push_back(e);
+    } else if (type == "voltage-tilt") {
+      VoltageTiltEffect e;
+      e.index = i;
+      e.cavity = cavity_named(r).name;
+      once(r, "cavity", e.cavity, "voltage-tilt on cavity");
+      e.slope = r.number("slope");
+      e.pivot_rho_n = r.number("pivot_rho_n", 0.5);
+      if (!(e.pivot_rho_n >= 0 && e.pivot_rho_n <= 1))
+        throw r.error("pivot_rho_n", "must be in [0, 1], got " + num(e.pivot_rho_n));
+      // The factor 1 + slope (rho_n - pivot) must stay positive over the whole gap.
+      if (!(1 - e.slope * e.pivot_rho_n > 0 && 1 + e.slope * (1 - e.pivot_rho_n) > 0))
+        throw r.error("slope", "reverses the voltage at one end of the gap (1 + slope (rho_n - pivot_rho_n) <= 0), got " +
+                                   num(e.slope));
+      fx.voltage_tilts.push_back(e);
+    } else if (type == "probe-offset") {
+      ProbeOffsetEffect e;
+      e.index = i;
+      e.probe = r.string("probe");
+      if (std::none_of(m.probes.begin(), m.probes.end(), [&](const Probe& p) { return p.name == e.probe; }))
+        throw r.error("probe", "no probe named '" + e.probe + "'");
+      once(r, "probe", e.probe, "probe-offset on probe");
+      e.dphi_deg = r.number("dphi_deg", 0.0);
+      check_abs(r, "dphi_deg", e.dphi_deg, 10, " (a misalignment)");
+      e.da_mm = r.number("da_mm", 0.0);
+      check_abs(r, "da_mm", e.da_mm, 200, " (a misalignment)");
+      e.ds_mm = r.number("ds_mm", 0.0);
+      check_abs(r, "ds_mm", e.ds_mm, 200, " (a misalignment)");
+      e.pivot_s_mm = r.opt_number("pivot_s_mm");
+      fx.probe_offsets.push_back(e);
+    } else {  // injection-offset
+      InjectionOffsetEffect e;
+      e.index = i;
+      if (fx.injection_offset)
+        throw r.error_here("a second injection-offset (the first is /effects/" +
+                           std::to_string(fx.injection_offset->index) + "): give one");
+      if (!m.injection) throw r.error_here("injection-offset needs the machine's injection block");
+      const Injection& in = *m.injection;
+      e.dr_mm = r.number("dr_mm", 0.0);
+      if (!(in.r_mm + e.dr_mm > 0))
+        throw r.error("dr_mm", "puts the start at r <= 0 (injection r_mm " + num(in.r_mm) + "), got " + num(e.dr_mm));
+      e.dpr_mrad = r.number("dpr_mrad", 0.0);
+      e.dz_mm = r.number("dz_mm", 0.0);
+      e.dpz_mrad = r.number("dpz_mrad", 0.0);
+      e.dE_MeV = r.number("dE_MeV", 0.0);
+      if (!(in.energy_MeV + e.dE_MeV > 0))
+        throw r.error("dE_MeV", "leaves no kinetic energy (injection energy_MeV " + num(in.energy_MeV) + "), got " +
+                                    num(e.dE_MeV));
+      // p_r / p and p_z / p after the offsets: their squares must leave an azimuthal part.
+      const double g0 = 1 + in.energy_MeV / m.particle.mass_MeV, P0 = std::sqrt(g0 * g0 - 1);
+      const double xr = in.pr_betagamma / P0 + e.dpr_mrad * 1e-3, xz = in.pz_betagamma / P0 + e.dpz_mrad * 1e-3;
+      if (!(xr * xr + xz * xz < 1))
+        throw r.error(e.dpr_mrad != 0 ? "dpr_mrad" : "dpz_mrad", "leaves the particle no azimuthal momentum");
+      e.dphase_deg = r.number("dphase_deg", 0.0);
+      if (e.dphase_deg != 0 && !(m.rf.frequency_MHz > 0))
+        throw r.error("dphase_deg", "a phase offset needs an RF frequency (rf.frequency_MHz)");
+      fx.injection_offset = e;
+    }
   }
-  return a;
+  return fx;
 }
 
 // A design-variable target must be a number the user may vary: not the format tag and not
@@ -622,7 +809,10 @@ Machine build(const json& input, const std::string& file, const std::string& dir
   if (top.has("injection")) m.injection = read_injection(doc["injection"], file);
   if (top.has("bunch")) m.bunch = read_bunch(doc["bunch"], file, dir);
   if (top.has("tracking")) m.tracking = read_tracking(doc["tracking"], file);
-  if (top.has("effects")) m.effects = read_effects(doc["effects"], file);
+  if (top.has("effects")) {
+    m.effect_set = read_effects(doc["effects"], file, m);
+    m.effects = doc["effects"];
+  }
   if (with_dvars) {
     // Built-ins first: a file entry of the same name overrides their bounds or definition.
     m.dvars = builtin_dvars(m);

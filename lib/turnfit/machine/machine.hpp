@@ -115,6 +115,94 @@ struct Tracking {
   int turns = 0;            ///< 0: until extraction or loss
 };
 
+/// Physics beyond the base model, for a "truth" machine the fitting model does not know about
+/// (machine-file `effects`, turnfit-machine(5) "EFFECTS"). Every entry keeps `index`, its place
+/// in the `effects` array, so later checks (e.g. a sector number against the map's sector
+/// count) can name the JSON path.
+
+/// `field-harmonic`: b += amplitude exp(-(r - r0)^2 / (2 width^2)) cos(n (theta - phase)).
+struct FieldHarmonicEffect {
+  size_t index = 0;
+  int n = 1;                 ///< harmonic number (0: an azimuthally uniform bump)
+  double amplitude_T = 0;    ///< peak added bending field [T] (> 0 strengthens at theta = phase)
+  double phase_deg = 0;      ///< azimuth of the maximum of the first lobe [deg]
+  double r_mm = 0;           ///< centre of the radial Gaussian [mm]
+  double width_mm = 0;       ///< rms width of the radial Gaussian [mm]; 0: the same at every radius
+};
+
+/// `sector-strength`: sector magnet `sector` (1-based; sector 1 centred on azimuth 0) scaled by
+/// 1 + relative, switched on and off in the valleys over `transition_deg`.
+struct SectorStrengthEffect {
+  size_t index = 0;
+  int sector = 1;
+  double relative = 0;        ///< fractional change of the magnet's field (0.001 = 0.1 %)
+  double transition_deg = 0;  ///< full width of the switch, centred on each valley; 0: a quarter pitch
+};
+
+/// `trimcoil-sectors`: the named coils act only on the listed sector magnets, whatever their
+/// `trimcoils[].sectors` say.
+struct TrimcoilSectorsEffect {
+  size_t index = 0;
+  std::vector<std::string> coils;
+  std::vector<int> sectors;   ///< 1-based
+};
+
+/// `gap-bow`: a cavity's gap line bowed into a parabola through its two ends, moved along the
+/// gap normal by `sagitta_mm` at the middle of [rmin, rmax] (> 0: downstream).
+struct GapBowEffect {
+  size_t index = 0;
+  std::string cavity;
+  double sagitta_mm = 0;
+};
+
+/// `voltage-tilt`: a cavity's radial voltage profile multiplied by 1 + slope (rho_n - pivot).
+struct VoltageTiltEffect {
+  size_t index = 0;
+  std::string cavity;
+  double slope = 0;           ///< relative change per unit rho_n (0.02: 2 % more at the outer end)
+  double pivot_rho_n = 0.5;   ///< where the profile is unchanged
+};
+
+/// `probe-offset`: a probe placed elsewhere than the machine file says, unknown to its readout:
+/// rotated by dphi (about the machine centre, or about its point at s = pivot_s_mm), moved
+/// sideways by da and along itself by ds.
+struct ProbeOffsetEffect {
+  size_t index = 0;
+  std::string probe;
+  double dphi_deg = 0;
+  double da_mm = 0;
+  double ds_mm = 0;
+  std::optional<double> pivot_s_mm;  ///< rotation centre along the probe; none: the machine centre
+};
+
+/// `injection-offset`: the beam starts away from the machine file's injection point (a coherent
+/// betatron oscillation and/or an energy or phase error). Same offsets as a bunch file's columns.
+struct InjectionOffsetEffect {
+  size_t index = 0;
+  double dr_mm = 0;
+  double dpr_mrad = 0;        ///< change of p_r / p
+  double dz_mm = 0;
+  double dpz_mrad = 0;        ///< change of p_z / p
+  double dE_MeV = 0;
+  double dphase_deg = 0;      ///< main RF phase; positive starts later
+};
+
+/// All effects of a machine, by type, validated.
+struct Effects {
+  std::vector<FieldHarmonicEffect> field_harmonics;
+  std::vector<SectorStrengthEffect> sector_strengths;
+  std::vector<TrimcoilSectorsEffect> trimcoil_sectors;
+  std::vector<GapBowEffect> gap_bows;
+  std::vector<VoltageTiltEffect> voltage_tilts;
+  std::vector<ProbeOffsetEffect> probe_offsets;
+  std::optional<InjectionOffsetEffect> injection_offset;
+  /// True when there is no effect at all.
+  bool empty() const {
+    return field_harmonics.empty() && sector_strengths.empty() && trimcoil_sectors.empty() && gap_bows.empty() &&
+           voltage_tilts.empty() && probe_offsets.empty() && !injection_offset;
+  }
+};
+
 /// A design variable: a named, bounded number that sets or shifts places in the machine.
 struct DesignVariable {
   struct Target {
@@ -145,7 +233,8 @@ struct Machine {
   std::optional<Injection> injection;
   std::optional<Bunch> bunch;
   Tracking tracking;
-  nlohmann::json effects = nlohmann::json::array();  ///< concealed/extra physics, validated by users
+  nlohmann::json effects = nlohmann::json::array();  ///< the `effects` section as loaded (normalized)
+  Effects effect_set;                                ///< the same, validated and typed
   std::map<std::string, DesignVariable> dvars;       ///< built-in and file-defined
   nlohmann::json doc;                                ///< the document as loaded (paths unresolved)
   /// Current values of the additive design variables (all 0 at load). The document holds

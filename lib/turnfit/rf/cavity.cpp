@@ -78,11 +78,45 @@ Gap::Gap(const Cavity& c, double rf_MHz, VoltageProfile profile)
   if (!(freq_hz_ > 0)) throw Error(ExitCode::data, "cavity '" + c.name + "': the RF frequency must be positive");
 }
 
+void Gap::set_bow(double sagitta_m) {
+  bow_m_ = sagitta_m;
+  bow_mid_m_ = 0.5 * (rmin_m_ + rmax_m_);
+  bow_inv_half_ = 2 / (rmax_m_ - rmin_m_);
+}
+
+void Gap::set_tilt(double slope, double pivot_rho_n) {
+  tilt_ = slope;
+  tilt_pivot_ = pivot_rho_n;
+}
+
+double Gap::bow(double rho) const {
+  const double u = (rho - bow_mid_m_) * bow_inv_half_;
+  return std::fabs(u) <= 1 ? bow_m_ * (1 - u * u) : 0.0;
+}
+
+double Gap::bow_slope(double rho) const {
+  const double u = (rho - bow_mid_m_) * bow_inv_half_;
+  return std::fabs(u) <= 1 ? -2 * bow_m_ * u * bow_inv_half_ : 0.0;
+}
+
 double Gap::crossing_azimuth(double r_m) const {
   if (r_m < std::fabs(pdis_m_)) return std::nan("");
   // r sin(A - theta) = PDIS on the half of the line where rho = x cos A + y sin A > 0.
-  double th = angle_rad_ - std::asin(pdis_m_ / r_m);
-  return std::remainder(th, 2 * kPi);
+  double psi = std::asin(pdis_m_ / r_m);
+  if (bow_m_ != 0) {
+    // The bowed line: with psi = A - theta the point is rho = r cos(psi) along the chord and
+    // r sin(psi) across it, so F(psi) = r sin(psi) - PDIS + bow(r cos psi) = 0. Newton from the
+    // straight line's root; |bow'| <= 0.4 (the loader's sagitta limit) keeps F' near r cos(psi).
+    for (int it = 0; it < 30; ++it) {
+      const double c = std::cos(psi), s = std::sin(psi), rho = r_m * c;
+      const double f = r_m * s - pdis_m_ + bow(rho);
+      const double df = r_m * c - bow_slope(rho) * r_m * s;
+      const double step = f / df;
+      psi -= step;
+      if (std::fabs(step) < 1e-16) break;
+    }
+  }
+  return std::remainder(angle_rad_ - psi, 2 * kPi);
 }
 
 GapKick Gap::kick(double x, double y, double t_s, double mass_MeV, double charge_e, GapPhysics physics,
@@ -93,7 +127,13 @@ GapKick Gap::kick(double x, double y, double t_s, double mass_MeV, double charge
   if (!(k.rho_n >= 0 && k.rho_n <= 1)) return k;
   k.active = true;
   double dvn;
-  const double vn = profile_.eval(k.rho_n, dvn);
+  double vn = profile_.eval(k.rho_n, dvn);
+  if (tilt_ != 0) {
+    // V (1 + s (rho_n - p)): its derivative feeds the RF deflection below.
+    const double f = 1 + tilt_ * (k.rho_n - tilt_pivot_);
+    dvn = dvn * f + vn * tilt_;
+    vn *= f;
+  }
   const double phi = 2 * kPi * freq_hz_ * t_s - phi0_rad_;
   k.phase_deg = std::remainder(phi, 2 * kPi) * 180 / kPi;
   const double p2 = px * px + py * py + pz * pz;
@@ -109,12 +149,19 @@ GapKick Gap::kick(double x, double y, double t_s, double mass_MeV, double charge
     return k;
   }
   const double p1sq = gamma1 * gamma1 - 1;
-  // Keep the component along the gap line and p_z; the rest lies along the gap normal.
-  const double p_par = px * cos_a_ + py * sin_a_;
+  // Keep the component along the gap line and p_z; the rest lies along the gap normal. On a
+  // bowed gap, the local line at the crossing: the chord turned by atan(bow').
+  double ca = cos_a_, sa = sin_a_;
+  if (bow_m_ != 0) {
+    const double sl = bow_slope(rho), inv = 1 / std::sqrt(1 + sl * sl);
+    ca = (cos_a_ - sl * sin_a_) * inv;
+    sa = (sin_a_ + sl * cos_a_) * inv;
+  }
+  const double p_par = px * ca + py * sa;
   const double pn2 = p1sq - p_par * p_par - pz * pz;
   const double p_n = std::sqrt(std::max(0.0, pn2));
-  px = p_par * cos_a_ - p_n * sin_a_;
-  py = p_par * sin_a_ + p_n * cos_a_;
+  px = p_par * ca - p_n * sa;
+  py = p_par * sa + p_n * ca;
   // RF magnetic deflection: the line integral of the gap's magnetic field follows from
   // Faraday's law, int B dn = (dV/drho) sin(phi) / omega; divided by B rho it is an angle.
   const double brho = std::sqrt(p1sq) * mass_MeV * 1e6 / (kSpeedOfLight * std::fabs(charge_e));

@@ -49,11 +49,30 @@ class Gap {
  public:
   /// Builds the gap from its description; rf_MHz is the machine's RF frequency.
   Gap(const Cavity& c, double rf_MHz, VoltageProfile profile);
-  /// Signed distance of (x, y) from the gap line [m]; positive before the crossing.
-  double distance(double x_m, double y_m) const { return x_m * sin_a_ - y_m * cos_a_ - pdis_m_; }
-  /// Azimuth [rad, in (-pi, pi]] where the circle of radius r meets the gap line on the
-  /// gap's side of the machine; NaN if r < PDIS.
+  /// Signed distance of (x, y) from the gap line [m], measured along the straight line's
+  /// normal; positive before the crossing. A bowed gap (set_bow) adds its bow at the point's
+  /// position along the chord, so the zero set is the bowed line.
+  double distance(double x_m, double y_m) const {
+    const double d = x_m * sin_a_ - y_m * cos_a_ - pdis_m_;
+    return bow_m_ == 0 ? d : d + bow(x_m * cos_a_ + y_m * sin_a_);
+  }
+  /// Azimuth [rad, in (-pi, pi]] where the circle of radius r meets the gap line (bowed, if
+  /// set) on the gap's side of the machine; NaN if r < PDIS.
   double crossing_azimuth(double r_m) const;
+  /// Bows the gap line (machine effect `gap-bow`): the middle of [rmin, rmax] moves by
+  /// `sagitta_m` along the gap normal (> 0: downstream, the direction the particle crosses in),
+  /// the ends stay, and the line between is the parabola through these three points. Kicks
+  /// then act along the local normal of the bowed line.
+  void set_bow(double sagitta_m);
+  /// Tilts the voltage profile (machine effect `voltage-tilt`): V_n(rho_n) becomes
+  /// V_n(rho_n) (1 + slope (rho_n - pivot)), and its slope (the RF deflection) follows.
+  void set_tilt(double slope, double pivot_rho_n);
+  /// Sagitta of the bow [m] (0: straight).
+  double sagitta_m() const { return bow_m_; }
+  /// Displacement of the bowed line along the normal at chord position rho [m] (0 beyond the
+  /// ends), and its slope d(bow)/d(rho).
+  double bow(double rho_m) const;
+  double bow_slope(double rho_m) const;
   /// Applies the kick at a point of the gap line: updates the momentum (px, py, pz in units of
   /// m c, i.e. beta gamma components) and returns what happened. t_s is the time since start.
   GapKick kick(double x_m, double y_m, double t_s, double mass_MeV, double charge_e, GapPhysics physics,
@@ -67,6 +86,8 @@ class Gap {
   std::string name_;
   double sin_a_, cos_a_, angle_rad_, pdis_m_;
   double rmin_m_, rmax_m_, volt_MV_, freq_hz_, phi0_rad_, gap_m_;
+  double bow_m_ = 0, bow_mid_m_ = 0, bow_inv_half_ = 0;  // gap-bow: sagitta, chord middle, 1/half chord
+  double tilt_ = 0, tilt_pivot_ = 0.5;                   // voltage-tilt
   VoltageProfile profile_;
 };
 

@@ -1,9 +1,12 @@
-// Assembling the tracking model from a machine description.
+// Assembling the tracking model from a machine description, and the machine's effects on it.
 #include "turnfit/track/model.hpp"
 
+#include <algorithm>
 #include <cmath>
+#include <utility>
 
 #include "turnfit/field/load.hpp"
+#include "turnfit/io/error.hpp"
 #include "turnfit/physics/particle.hpp"
 
 namespace turnfit {
@@ -13,14 +16,180 @@ double ProbeLine::crossing_azimuth(double r_m) const {
   return std::remainder(phi_rad - std::asin(a_m / r_m), 2 * kPi);
 }
 
+double FieldEffects::sector_factor(double th, double& dfactor) const {
+  dfactor = 0;
+  const int n = static_cast<int>(sector_relative.size());
+  if (n == 0) return 1;
+  // Sector k is centred on azimuth (k - 1) pitch (the trim coils' convention, trimcoil.cpp):
+  // u is the azimuth from the centre of the sector j (0-based) that holds theta.
+  double a = std::fmod(th + 0.5 * pitch_rad, 2 * kPi);
+  if (a < 0) a += 2 * kPi;
+  const int j = std::min(static_cast<int>(a / pitch_rad), n - 1);
+  const double u = a - (j + 0.5) * pitch_rad;
+  // Within half a switch width of the valley after sector j (u near +pitch/2) or before it
+  // (u near -pitch/2) the factor blends the two magnets; elsewhere it is sector j's alone.
+  const double h = half_transition_rad, half_pitch = 0.5 * pitch_rad;
+  const auto rel = [&](int k) { return sector_relative[static_cast<size_t>((k + n) % n)]; };
+  double lo, hi, x;
+  if (u > half_pitch - h) {
+    lo = rel(j);
+    hi = rel(j + 1);
+    x = (u - half_pitch) / h;
+  } else if (u < h - half_pitch) {
+    lo = rel(j - 1);
+    hi = rel(j);
+    x = (u + half_pitch) / h;
+  } else {
+    return 1 + rel(j);
+  }
+  // Quintic smooth step S on [-1, 1] (0, 1/2, 1 at -1, 0, 1; first and second derivatives 0
+  // at the ends), so the field stays C2 in theta for the fifth-order integrator. Writing the
+  // factor as 1 + lo + (hi - lo) S keeps it exactly 1 + relative when neighbours are equal.
+  if (x <= -1) return 1 + lo;
+  if (x >= 1) return 1 + hi;
+  const double t = 0.5 * (x + 1);
+  const double S = t * t * t * (t * (6 * t - 15) + 10);
+  dfactor = (hi - lo) * 15 * t * t * (1 - t) * (1 - t) / h;
+  return 1 + lo + (hi - lo) * S;
+}
+
 bool TrackModel::field(double r_m, double th, FieldSample& out) const {
   // One branch per sample keeps the spline path free of indirect calls.
   if (!(opal_map ? opal_map->sample(r_m, th, out) : map.sample(r_m, th, out))) return false;
+  if (effects.active) return field_with_effects(r_m, th, out);
   if (coils.empty()) return true;
   const FieldSample main = out;
   for (const auto& c : coils)
     c.add(r_m, th, main.bz_T, main.dbz_dr_T_m, main.dbz_dth_T, threshold_T, out.bz_T, out.dbz_dr_T_m, out.dbz_dth_T);
   return true;
+}
+
+bool TrackModel::field_with_effects(double r_m, double th, FieldSample& out) const {
+  // A stronger sector magnet scales the map's field; the trim coils see the scaled field
+  // (their threshold is on the main field), the harmonic error field comes on top of both.
+  if (!effects.sector_relative.empty()) {
+    double df;
+    const double f = effects.sector_factor(th, df);
+    out.dbz_dth_T = out.dbz_dth_T * f + out.bz_T * df;
+    out.dbz_dr_T_m *= f;
+    out.bz_T *= f;
+  }
+  const FieldSample main = out;
+  for (const auto& c : coils)
+    c.add(r_m, th, main.bz_T, main.dbz_dr_T_m, main.dbz_dth_T, threshold_T, out.bz_T, out.dbz_dr_T_m, out.dbz_dth_T);
+  for (const auto& h : effects.harmonics) {
+    const double dr = r_m - h.r0_m;
+    const double g = h.inv_width2 == 0 ? 1.0 : std::exp(-0.5 * dr * dr * h.inv_width2);
+    const double arg = h.n * (th - h.phase_rad);
+    const double b = h.amplitude_T * g * std::cos(arg);
+    out.bz_T += b;
+    out.dbz_dr_T_m -= b * dr * h.inv_width2;
+    out.dbz_dth_T -= h.amplitude_T * g * h.n * std::sin(arg);
+  }
+  return true;
+}
+
+namespace {
+std::string effect_path(size_t index, const std::string& key) {
+  return "/effects/" + std::to_string(index) + (key.empty() ? "" : "/" + key);
+}
+}  // namespace
+
+void apply_effects(TrackModel& t, const Effects& fx, const std::string& file, const ModelOptions& opt) {
+  const int sym = t.map.grid().symmetry;
+  const double pitch = 2 * kPi / sym;
+  auto check_sector = [&](int k, const std::string& where) {
+    if (k < 1 || k > sym)
+      throw data_error(file, 0, where + ": sector " + std::to_string(k) + " out of range (1.." + std::to_string(sym) +
+                                    ", the field map's sector count)");
+  };
+  for (const auto& h : fx.field_harmonics) {
+    FieldEffects::Harmonic fh;
+    fh.n = h.n;
+    fh.amplitude_T = h.amplitude_T;
+    fh.phase_rad = h.phase_deg * kPi / 180;
+    fh.r0_m = h.r_mm * 1e-3;
+    fh.inv_width2 = h.width_mm > 0 ? 1 / (h.width_mm * 1e-3 * h.width_mm * 1e-3) : 0.0;
+    t.effects.harmonics.push_back(fh);
+  }
+  if (!fx.sector_strengths.empty()) {
+    t.effects.sector_relative.assign(static_cast<size_t>(sym), 0.0);
+    t.effects.pitch_rad = pitch;
+    // One switch width for the whole ring: the windows must add up to 1 at every azimuth.
+    double transition = 0;
+    for (const auto& e : fx.sector_strengths) {
+      check_sector(e.sector, effect_path(e.index, "sector"));
+      if (e.transition_deg * kPi / 180 > pitch * (1 + 1e-12))
+        throw data_error(file, 0, effect_path(e.index, "transition_deg") + ": must be at most the sector pitch " +
+                                      std::to_string(360.0 / sym) + " deg");
+      const double tr = e.transition_deg > 0 ? e.transition_deg * kPi / 180 : 0.25 * pitch;
+      if (transition > 0 && std::fabs(tr - transition) > 1e-12)
+        throw data_error(file, 0, effect_path(e.index, "transition_deg") +
+                                      ": every sector-strength needs the same transition_deg (one switch per valley)");
+      transition = tr;
+      t.effects.sector_relative[static_cast<size_t>(e.sector - 1)] = e.relative;
+    }
+    t.effects.half_transition_rad = 0.5 * transition;
+  }
+  for (const auto& e : fx.trimcoil_sectors) {
+    for (int k : e.sectors) check_sector(k, effect_path(e.index, "sectors"));
+    for (size_t c = 0; c < e.coils.size(); ++c) {
+      auto it = std::find_if(t.coils.begin(), t.coils.end(), [&](const TrimCoilField& f) { return f.name() == e.coils[c]; });
+      if (it == t.coils.end())
+        throw data_error(file, 0, effect_path(e.index, "coils/" + std::to_string(c)) + ": no trim coil named '" +
+                                      e.coils[c] + "'");
+      TrimCoil coil = it->coil();
+      coil.sectors = e.sectors;
+      *it = TrimCoilField(coil, sym);
+      if (!opt.opal_map) it->tabulate(t.map.grid().r_min_m(), t.map.grid().r_max_m());
+    }
+  }
+  auto gap_named = [&](const std::string& name, size_t index) -> Gap& {
+    for (auto& g : t.gaps)
+      if (g.name() == name) return g;
+    throw data_error(file, 0, effect_path(index, "cavity") + ": no cavity named '" + name + "'");
+  };
+  for (const auto& e : fx.gap_bows) gap_named(e.cavity, e.index).set_bow(e.sagitta_mm * 1e-3);
+  for (const auto& e : fx.voltage_tilts) gap_named(e.cavity, e.index).set_tilt(e.slope, e.pivot_rho_n);
+  for (const auto& e : fx.probe_offsets) {
+    auto it = std::find_if(t.probes.begin(), t.probes.end(), [&](const ProbeLine& p) { return p.name == e.probe; });
+    if (it == t.probes.end())
+      throw data_error(file, 0, effect_path(e.index, "probe") + ": no probe named '" + e.probe + "'");
+    ProbeLine& p = *it;
+    const double phi1 = p.phi_rad + e.dphi_deg * kPi / 180;
+    const double c1 = std::cos(phi1), s1 = std::sin(phi1);
+    if (e.pivot_s_mm) {
+      // Turned about its own point Q at s = pivot (paper Eq. 1 coordinates): the new line
+      // passes through Q, and the readout, fixed to the probe, still reads Q as `pivot`.
+      const double sq = *e.pivot_s_mm * 1e-3;
+      const double qx = sq * p.cos_phi + p.a_m * p.sin_phi, qy = sq * p.sin_phi - p.a_m * p.cos_phi;
+      p.a_m = qx * s1 - qy * c1;
+      p.shift_m += (qx * c1 + qy * s1) - sq;
+    }
+    p.phi_rad = phi1;
+    p.cos_phi = c1;
+    p.sin_phi = s1;
+    p.a_m += e.da_mm * 1e-3;
+    // Moved along itself with a readout that does not know: the probe's own shift.
+    p.shift_m += e.ds_mm * 1e-3;
+  }
+  t.effects.active = !t.effects.harmonics.empty() || !t.effects.sector_relative.empty();
+}
+
+std::vector<std::string> effects_without_opal_input(const Effects& fx) {
+  std::vector<std::pair<size_t, std::string>> out;
+  for (const auto& e : fx.field_harmonics)
+    out.emplace_back(e.index, "field-harmonic (" + effect_path(e.index, "") + "): OPAL needs a field map with it added");
+  for (const auto& e : fx.sector_strengths)
+    out.emplace_back(e.index, "sector-strength (" + effect_path(e.index, "") + "): OPAL needs a field map with it applied");
+  for (const auto& e : fx.gap_bows)
+    out.emplace_back(e.index, "gap-bow (" + effect_path(e.index, "") + "): OPAL's single gaps are straight lines");
+  for (const auto& e : fx.voltage_tilts)
+    out.emplace_back(e.index, "voltage-tilt (" + effect_path(e.index, "") + "): OPAL needs a tilted profile file");
+  std::sort(out.begin(), out.end());
+  std::vector<std::string> lines;
+  for (auto& [i, s] : out) lines.push_back(std::move(s));
+  return lines;
 }
 
 TrackModel make_track_model(const Machine& m, const ModelOptions& opt) {
@@ -54,6 +223,7 @@ TrackModel make_track_model(const Machine& m, const ModelOptions& opt) {
   t.charge_e = m.particle.charge_e;
   t.rf_MHz = m.rf.frequency_MHz;
   t.harmonic = m.rf.harmonic;
+  if (!m.effect_set.empty()) apply_effects(t, m.effect_set, m.path.empty() ? "<machine>" : m.path, opt);
   return t;
 }
 

@@ -28,6 +28,26 @@ struct ProbeLine {
   double crossing_azimuth(double r_m) const;
 };
 
+/// Field effects of the machine file (`field-harmonic`, `sector-strength`) on top of the map
+/// and the trim coils. Filled by apply_effects; `active` false keeps the field path as it was.
+struct FieldEffects {
+  /// b += amplitude g(r) cos(n (theta - phase)), g(r) = exp(-(r - r0)^2 inv_width2 / 2).
+  struct Harmonic {
+    int n = 1;
+    double amplitude_T = 0, phase_rad = 0, r0_m = 0;
+    double inv_width2 = 0;  ///< 1 / width^2 [1/m^2]; 0: g = 1 at every radius
+  };
+  bool active = false;
+  std::vector<Harmonic> harmonics;
+  /// Relative strength change of each sector magnet (index k - 1 for sector k); empty: none.
+  std::vector<double> sector_relative;
+  double pitch_rad = 0;            ///< 2 pi / sector count
+  double half_transition_rad = 0;  ///< half width of the switch between neighbouring sectors
+  /// Main-field factor 1 + sum_k relative_k w_k(theta) and its theta derivative; the windows w_k
+  /// add up to 1 at every azimuth.
+  double sector_factor(double theta_rad, double& dfactor_dth) const;
+};
+
 /// The machine as trackers see it.
 struct TrackModel {
   PolarFieldMap map;                 ///< main field (already scaled)
@@ -42,10 +62,14 @@ struct TrackModel {
   double charge_e = 1;
   double rf_MHz = 0;                 ///< main RF frequency (phase reference of the turn records)
   int harmonic = 1;
+  FieldEffects effects;              ///< field effects (apply_effects)
 
   /// Total bending field b (> 0 bends a positive particle moving with increasing azimuth;
   /// physical Bz = -b) and its derivatives; false outside the field map.
   bool field(double r_m, double theta_rad, FieldSample& out) const;
+
+ private:
+  bool field_with_effects(double r_m, double theta_rad, FieldSample& out) const;
 };
 
 /// How the model is built.
@@ -55,7 +79,23 @@ struct ModelOptions {
   bool opal_map = false;
 };
 
-/// Builds the model of a machine: reads the map, the cavity profiles and trim coil tables.
+/// Builds the model of a machine: reads the map, the cavity profiles and trim coil tables,
+/// then applies the machine's effects (all but injection-offset, which acts on the start:
+/// effective_injection in tracker.hpp).
 TrackModel make_track_model(const Machine& m, const ModelOptions& opt = {});
+
+/// Applies machine effects to a model built without them: field harmonics and sector strengths
+/// to the field, trimcoil-sectors to the coils (rebuilt, and tabulated unless opt.opal_map),
+/// gap-bow and voltage-tilt to the gaps, probe-offset to the probes (turnfit-machine(5),
+/// "EFFECTS"). Elements are found by name; a sector outside the map's sector count, or an
+/// element the model lacks, is EX_DATAERR naming `file` and the effect's JSON path.
+void apply_effects(TrackModel& t, const Effects& fx, const std::string& file = "<machine>",
+                   const ModelOptions& opt = {});
+
+/// The effects an OPAL-cycl 2022.1 input cannot state as element parameters, one line each
+/// ("gap-bow (/effects/2): ..." saying what OPAL would need), in the order of the `effects`
+/// array. probe-offset, injection-offset and trimcoil-sectors map onto PROBE, RINIT/PRINIT/
+/// PHIINIT and per-sector PHIMIN/PHIMAX, so they are not listed.
+std::vector<std::string> effects_without_opal_input(const Effects& fx);
 
 }  // namespace turnfit

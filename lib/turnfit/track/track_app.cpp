@@ -156,12 +156,19 @@ int run_track(const TrackOptions& o) {
       throw data_error(m.path, 0, "/injection: pr_betagamma and pz_betagamma exceed the total momentum " +
                                       cli::fmt(P, 6) + " of " + cli::fmt(m.injection->energy_MeV) + " MeV");
   }
+  // The beam starts where the machine's injection-offset effect puts it (if any).
+  const Injection injection = effective_injection(m);
   if (m.probes.empty()) cli::warn(o.common, "the machine has no probes: turns.csv will have no rows");
   if (o.opal_compat && !o.integrator.empty() && o.integrator != "rk4")
     throw usage_error("--opal-compat tracks with the rk4 integrator: drop --integrator " + o.integrator);
   ModelOptions mo;
   mo.opal_map = o.opal_compat;
   TrackModel model = make_track_model(m, mo);
+  // Effects are physics, not numerics: --opal-compat applies them like the default mode, but a
+  // run with ones an OPAL input cannot state has no OPAL run to be checked against.
+  if (o.opal_compat)
+    for (const auto& line : effects_without_opal_input(m.effect_set))
+      cli::warn(o.common, "--opal-compat with effect " + line + "; applied, but this run has no OPAL counterpart");
   warn_probes_outside(o.common, model);
   TrackSettings st;
   st.integrator = o.opal_compat ? "rk4"
@@ -179,7 +186,7 @@ int run_track(const TrackOptions& o) {
     throw usage_error("the rk4 integrator needs an RF frequency (rf.frequency_MHz) for its time step");
   st.gap_physics = (o.opal_deflection || o.opal_compat) ? GapPhysics::opal : GapPhysics::turnfit;
   st.opal_compat = o.opal_compat;
-  const ParticleState reference = injection_state(*m.injection, m.particle.mass_MeV, o.opal_compat);
+  const ParticleState reference = injection_state(injection, m.particle.mass_MeV, o.opal_compat);
 
   // A bunch when asked for by count or file (here or in the machine); --particles 0 forces
   // the single reference particle.
@@ -247,7 +254,7 @@ int run_track(const TrackOptions& o) {
     starts.reserve(offs.size());
     for (size_t i = 0; i < offs.size(); ++i) {
       try {
-        starts.push_back(offset_state(*m.injection, m.particle.mass_MeV, model.rf_MHz, offs[i]));
+        starts.push_back(offset_state(injection, m.particle.mass_MeV, model.rf_MHz, offs[i]));
       } catch (const Error& e) {
         throw Error(e.code(), std::string(e.what()) + " (particle " + std::to_string(i) + ")");
       }

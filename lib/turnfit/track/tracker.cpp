@@ -4,6 +4,7 @@
 #include <algorithm>
 #include <cmath>
 
+#include "turnfit/io/error.hpp"
 #include "turnfit/track/integrators.hpp"
 
 namespace turnfit {
@@ -30,6 +31,29 @@ ParticleState injection_state(const Injection& inj, double mass_MeV, bool opal_s
   s.pz = pz;
   s.t = inj.t_ns * 1e-9;
   return s;
+}
+
+Injection effective_injection(const Machine& m) {
+  if (!m.injection) throw data_error(m.path, 0, "/injection: the machine has no injection block to track from");
+  Injection in = *m.injection;
+  if (!m.effect_set.injection_offset) return in;
+  const InjectionOffsetEffect& o = *m.effect_set.injection_offset;
+  const Injection& in0 = *m.injection;
+  // The loader checked that these stay physical (r, E > 0, an azimuthal momentum left).
+  auto betagamma = [&](double e_MeV) {
+    const double g = 1 + e_MeV / m.particle.mass_MeV;
+    return std::sqrt(g * g - 1);
+  };
+  const double P0 = betagamma(in0.energy_MeV);
+  in.energy_MeV += o.dE_MeV;
+  const double P = betagamma(in.energy_MeV);
+  in.r_mm += o.dr_mm;
+  in.z_mm += o.dz_mm;
+  // Angles p_r / p and p_z / p move by the offsets; the momentum is that of the new energy.
+  in.pr_betagamma = P * (in0.pr_betagamma / P0 + o.dpr_mrad * 1e-3);
+  in.pz_betagamma = P * (in0.pz_betagamma / P0 + o.dpz_mrad * 1e-3);
+  if (o.dphase_deg != 0) in.t_ns += o.dphase_deg / (360 * m.rf.frequency_MHz * 1e6) * 1e9;
+  return in;
 }
 
 double kinetic_energy(const ParticleState& s, double mass_MeV) {

@@ -89,6 +89,13 @@ std::vector<std::pair<std::string, std::string>> list_integrators();
 /// P^2 - p_r^2 - p_z^2 rounded to float and taken in float (a 1e-4 mm effect on the orbit).
 ParticleState injection_state(const Injection& inj, double mass_MeV, bool opal_single_precision = false);
 
+/// The machine's injection with its `injection-offset` effect applied (the machine's own
+/// injection when it has none): r + dr, E + dE, p_r / p + dpr, z + dz, p_z / p + dpz, and the
+/// start time moved by dphase / (360 f_rf), exactly as a bunch file's offsets move a particle
+/// (offset_state in bunch.hpp). Every tool that tracks a machine's beam starts from this.
+/// The machine must have an injection block (EX_DATAERR otherwise).
+Injection effective_injection(const Machine& m);
+
 /// Kinetic energy [MeV] of a state.
 double kinetic_energy(const ParticleState& s, double mass_MeV);
 
