@@ -25,10 +25,13 @@ struct WireModel {
 };
 
 /// Run-to-run machine drift: each run (seed) changes these settings by Gaussian amounts with
-/// these rms values, so two runs of the same machine differ as two measurements do.
+/// these rms values, so two runs of the same machine differ as two measurements do. The
+/// defaults give the PSI Ring example (examples/psi-ring/aeo.json) per-turn RRL differences of
+/// sigma 0.48 mm and MAE 0.44 mm between runs, averaged over 66 pairs of runs, where the paper
+/// measured sigma 0.51 and 0.58 mm, MAE 0.40 mm (Frey et al., repeatability at 58/88/108 uA).
 struct DriftModel {
-  double r_mm = 0.5;          ///< injection radius (beam centring from the injector and its line)
-  double pr_mrad = 0.25;      ///< injection angle p_r / p
+  double r_mm = 0.65;         ///< injection radius (beam centring from the injector and its line)
+  double pr_mrad = 0.3;       ///< injection angle p_r / p
   double voltage_rel = 1e-4;  ///< all cavity voltages together, relative (RF amplitude regulation)
 };
 
