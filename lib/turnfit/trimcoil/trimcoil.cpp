@@ -20,6 +20,15 @@ void poly(const std::vector<double>& c, double x, double& p, double& dp, double&
     p = p * x + c[i];
   }
 }
+/// Coefficients of p(c + y) in y (a Taylor shift), accumulated in long double.
+std::vector<double> shifted(const std::vector<double>& a, double c) {
+  const size_t n = a.size();
+  std::vector<long double> b(a.begin(), a.end());
+  // Repeated synthetic division by (x - c): after pass k, b[k] is the k-th Taylor coefficient.
+  for (size_t k = 0; k < n; ++k)
+    for (size_t i = n - 1; i > k; --i) b[i - 1] += static_cast<long double>(c) * b[i];
+  return std::vector<double>(b.begin(), b.end());
+}
 }  // namespace
 
 void rational(const std::vector<double>& num, const std::vector<double>& den, double x, double& q,
@@ -69,6 +78,11 @@ TrimCoilField::TrimCoilField(const TrimCoil& coil, int symmetry) : coil_(coil), 
     tm_[0] = d[0];
     tm_[n - 1] = d[n - 2];
     for (size_t i = 1; i + 1 < n; ++i) tm_[i] = d[i - 1] * d[i] <= 0 ? 0 : 2 / (1 / d[i - 1] + 1 / d[i]);
+  }
+  if (kind_ == 0 || kind_ == 1) {
+    centre_m_ = 0.5 * (coil.rmin_mm + coil.rmax_mm) * 1e-3;
+    num_c_ = shifted(coil.coefnum, centre_m_);
+    den_c_ = shifted(coil.coefdenom, centre_m_);
   }
   everywhere_ = coil.sectors.empty() && coil.phimin_deg == 0 && coil.phimax_deg >= 360;
   for (int s : coil.sectors)
@@ -173,7 +187,7 @@ void TrimCoilField::shape_exact(double r_m, double& s, double& ds) const {
     return;
   }
   double q, dq, d2q;
-  rational(coil_.coefnum, coil_.coefdenom, r_m, q, dq, d2q);
+  rational(num_c_, den_c_, r_m - centre_m_, q, dq, d2q);
   if (kind_ == 0) {
     s = q;
     ds = dq;

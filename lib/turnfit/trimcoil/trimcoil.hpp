@@ -52,6 +52,12 @@ class TrimCoilField {
   int kind_;  // 0 bfield, 1 phase, 2 mirrored, 3 table
   bool everywhere_ = false;  // full circle, all sectors: skip the azimuth test
   std::vector<double> tr_, ts_, tm_;  // table radii [m], shape values, Hermite slopes
+  // Rational coefficients re-expanded about the support's centre r_c: f(r) = sum c_k (r - r_c)^k.
+  // Coefficients in r itself cancel heavily at r ~ 4 m (terms of (r/w)^5 ~ 1e9 for a value of 1),
+  // which makes their evaluation noisy at 1e-7 of the peak and its slope jagged; the shift is
+  // done once in extended precision, so the function evaluated is smooth.
+  double centre_m_ = 0;
+  std::vector<double> num_c_, den_c_;
   struct Segment {  // equally spaced lookup nodes on [r0, r0 + (n - 1) h]
     double r0, h, inv_h;
     std::vector<double> s, ds;
