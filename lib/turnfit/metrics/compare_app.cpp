@@ -233,7 +233,8 @@ void write_errors_text(std::ostream& os, const CompareReport& r) {
         std::string note;
         for (int k = 0; k < 3; ++k)
           if (s.largest_index[k] == ri) note = std::string("  <- ") + (k == 0 ? "largest" : kRank[k]);
-        if (std::fabs(sp->r_mm - m->r_mm) > r.tol_mm) note += note.empty() ? "  > tol" : ", > tol";
+        if (r.tol_mm > 0 && std::fabs(sp->r_mm - m->r_mm) > r.tol_mm)  // tol 0: every mark would be noise
+          note += note.empty() ? "  > tol" : ", > tol";
         if (!m->flag.empty()) note += " [" + m->flag + "]";
         line += note;
         ++mi;
