@@ -261,6 +261,12 @@ TEST_CASE("synth: run-to-run drift moves the PSI Ring's RRL turns as much as the
   }
   nlohmann::json doc = read_json(std::string(TURNFIT_TEST_DIR) + "/../examples/psi-ring/aeo.json");
   const std::string dir = std::string(TURNFIT_TEST_DIR) + "/../examples/psi-ring";
+  // The shared data wherever it is (TURNFIT_SHARED), not only beside the project.
+  doc["field"]["map"] = map;
+  for (auto& c : doc["cavities"]) {
+    const std::string prof = c["profile"].get<std::string>();
+    c["profile"] = shared_file("data/psi-ring/" + prof.substr(prof.rfind('/') + 1));
+  }
   doc["bunch"] = {{"sigma_E_MeV", 1e-9}};  // one particle: the centroid without sampling noise
   Machine m = machine_from_json(doc, "aeo.json", dir);
   SynthSettings s = quick_settings(190, 1);
