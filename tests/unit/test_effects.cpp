@@ -638,52 +638,87 @@ TEST_CASE("effects: voltage-tilt in tracking: the gain at the crossing's rho_n, 
 // ---------------------------------------------------------------------------------------------
 // probe-offset
 
-TEST_CASE("effects: probe-offset equals moving the probe; turned about its own point, the analytic reading",
-          "[effects][probe]") {
+TEST_CASE("effects: probe-offset moves the probe and not its readout", "[effects][probe]") {
+  // The readout converts its reading sigma = s - shift to a radius with the machine file's
+  // geometry: hypot(sigma + shift, a) - shift. What the probe's own parameters would do is
+  // therefore matched exactly where the readout's geometry is unchanged (a turn about the
+  // machine centre; a shift along a radial probe), and not for a sideways move.
   const double e0 = energy_on(kB0, kR);
-  auto run = [&](TrackModel m, const std::string& integ) { return track(m, start(e0, kR + 0.3), integ, 4.6); };
+  auto run = [&](const TrackModel& m, const std::string& integ, const ParticleState& s0, double turns) {
+    return track(m, s0, integ, turns);
+  };
+  // Turned about the machine centre: the same as phi_deg + dphi, an offset probe too.
   TrackModel base = uniform();
   base.probes = {probe("P90", 90, 40)};
-  TrackModel moved = base, fx = base;
-  moved.probes[0] = probe("P90", 90.7, 40 + 12);
-  moved.probes[0].shift_m = 0.0075;
-  apply_effects(fx, with_effects(json::parse(R"([{"type": "probe-offset", "probe": "P90", "dphi_deg": 0.7,
-                                                  "da_mm": 12, "ds_mm": 7.5}])")).effect_set);
+  TrackModel turned = base, fx = base;
+  turned.probes[0] = probe("P90", 90.7, 40);
+  apply_effects(fx, with_effects(json::parse(R"([{"type": "probe-offset", "probe": "P90", "dphi_deg": 0.7}])")).effect_set);
   for (const char* integ : kIntegrators) {
     INFO(integ);
-    const Run a = run(moved, integ), b = run(fx, integ), c = run(base, integ);
+    const Run a = run(turned, integ, start(e0, kR + 0.3), 4.6), b = run(fx, integ, start(e0, kR + 0.3), 4.6),
+              c = run(base, integ, start(e0, kR + 0.3), 4.6);
     REQUIRE(a.turns.size() == 5);
     REQUIRE(b.turns.size() == 5);
     for (size_t i = 0; i < a.turns.size(); ++i) {
       CHECK(b.turns[i].r_mm == Approx(a.turns[i].r_mm).margin(1e-9));
       CHECK(b.turns[i].s_mm == Approx(a.turns[i].s_mm).margin(1e-9));
       CHECK(b.turns[i].t_ns == Approx(a.turns[i].t_ns).margin(1e-9));
-      CHECK(std::fabs(b.turns[i].r_mm - c.turns[i].r_mm) > 1);
+      CHECK(std::fabs(b.turns[i].r_mm - c.turns[i].r_mm) > 1);  // the off-centre circle
     }
   }
-  // ds alone is the probe's own shift: the reading drops by ds.
-  TrackModel shifted = base, ds = base;
+  // ds alone on a radial probe is the probe's own shift: every reading drops by ds.
+  TrackModel radial = uniform();
+  radial.probes = {probe("P90", 90)};
+  TrackModel shifted = radial, ds = radial;
   shifted.probes[0].shift_m = -0.004;
   apply_effects(ds, with_effects(json::parse(R"([{"type": "probe-offset", "probe": "P90", "ds_mm": -4}])")).effect_set);
-  const Run s1 = run(shifted, "azimuth"), s2 = run(ds, "azimuth"), s0 = run(base, "azimuth");
-  for (size_t i = 0; i < s1.turns.size(); ++i) {
-    CHECK(s2.turns[i].r_mm == Approx(s1.turns[i].r_mm).margin(1e-9));
-    CHECK(s2.turns[i].r_mm == Approx(s0.turns[i].r_mm + 4).margin(1e-9));
+  for (const char* integ : kIntegrators) {
+    INFO(integ);
+    const Run s1 = run(shifted, integ, start(e0, kR + 0.3), 4.6), s2 = run(ds, integ, start(e0, kR + 0.3), 4.6),
+              s0 = run(radial, integ, start(e0, kR + 0.3), 4.6);
+    REQUIRE(s2.turns.size() == 5);
+    for (size_t i = 0; i < s1.turns.size(); ++i) {
+      CHECK(s2.turns[i].r_mm == Approx(s1.turns[i].r_mm).margin(1e-9));
+      CHECK(s2.turns[i].s_mm == Approx(s1.turns[i].s_mm).margin(1e-9));
+      CHECK(s2.turns[i].r_mm == Approx(s0.turns[i].r_mm + 4).margin(1e-9));
+    }
+  }
+  // A radial probe moved sideways by da = 30 mm: the centred circle of radius R2 = 2.3 m
+  // meets it at s = sqrt(R2^2 - da^2), which the readout, believing a = 0, reports as the
+  // radius (1.96 mm low); the probe's own a = 30 mm would have reported R2.
+  const double R2 = 2.3, e2 = energy_on(kB0, R2), da = 0.03;
+  TrackModel side = radial, side_a = radial;
+  side_a.probes[0] = probe("P90", 90, 30);
+  apply_effects(side, with_effects(json::parse(R"([{"type": "probe-offset", "probe": "P90", "da_mm": 30}])")).effect_set);
+  for (const char* integ : kIntegrators) {
+    INFO(integ);
+    const double tol = std::string(integ) == "rk4" ? 1e-4 : 1e-8;
+    const Run a = run(side, integ, start(e2, R2), 2.6), b = run(side_a, integ, start(e2, R2), 2.6);
+    REQUIRE(a.turns.size() == 3);
+    REQUIRE(b.turns.size() == 3);
+    for (size_t i = 0; i < 3; ++i) {
+      CHECK(a.turns[i].r_mm == Approx(std::sqrt(R2 * R2 - da * da) * 1e3).margin(tol));
+      CHECK(b.turns[i].r_mm == Approx(R2 * 1e3).margin(tol));
+    }
   }
   // A radial probe at 90 deg turned by 2 deg about its point Q at s = 2 m: the centred circle
   // of radius R2 = 2.3 m meets the new line at distance d from Q, d^2 + 2 R cos(dphi) d + R^2 -
-  // R2^2 = 0 (R = |Q|), and the probe, whose scale turns with it, reads s = 2000 mm + d.
-  TrackModel pivot = uniform();
-  pivot.probes = {probe("P90", 90)};
+  // R2^2 = 0 (R = |Q|), and the probe, whose scale turns with it, reads 2000 mm + d (and, radial
+  // for its readout, reports that as the radius).
+  TrackModel pivot = radial;
   apply_effects(pivot, with_effects(json::parse(R"([{"type": "probe-offset", "probe": "P90", "dphi_deg": 2,
                                                      "pivot_s_mm": 2000}])")).effect_set);
-  const double R2 = 2.3, e2 = energy_on(kB0, R2), cd = std::cos(2 * kDeg);
+  const double cd = std::cos(2 * kDeg);
   const double d = -2 * cd + std::sqrt(4 * cd * cd - 4 + R2 * R2);
   for (const char* integ : kIntegrators) {
     INFO(integ);
-    const Run r = track(pivot, start(e2, R2), integ, 2.6);
+    const double tol = std::string(integ) == "rk4" ? 1e-4 : 1e-8;
+    const Run r = run(pivot, integ, start(e2, R2), 2.6);
     REQUIRE(r.turns.size() == 3);
-    for (const auto& t : r.turns) CHECK(t.s_mm == Approx(2000 + d * 1e3).margin(std::string(integ) == "rk4" ? 1e-4 : 1e-8));
+    for (const auto& t : r.turns) {
+      CHECK(t.s_mm == Approx(2000 + d * 1e3).margin(tol));
+      CHECK(t.r_mm == Approx(2000 + d * 1e3).margin(tol));
+    }
   }
 }
 

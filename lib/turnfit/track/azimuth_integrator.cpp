@@ -234,7 +234,7 @@ TrackEnd track_azimuth(const TrackModel& m, const ParticleState& s0, const Track
         TurnRecord tr;
         tr.probe = e.index;
         tr.turn = e.count;
-        tr.r_mm = (r - pl.shift_m) * 1e3;
+        tr.r_mm = pl.recorded_r(r, s) * 1e3;
         tr.s_mm = (s - pl.shift_m) * 1e3;
         tr.t_ns = y[4] * 1e9;
         tr.energy_MeV = energy();

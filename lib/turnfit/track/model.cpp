@@ -156,11 +156,14 @@ void apply_effects(TrackModel& t, const Effects& fx, const std::string& file, co
     if (it == t.probes.end())
       throw data_error(file, 0, effect_path(e.index, "probe") + ": no probe named '" + e.probe + "'");
     ProbeLine& p = *it;
+    p.hidden_offset = true;
+    p.a_read_m = p.a_m;
+    p.shift_read_m = p.shift_m;
     const double phi1 = p.phi_rad + e.dphi_deg * kPi / 180;
     const double c1 = std::cos(phi1), s1 = std::sin(phi1);
     if (e.pivot_s_mm) {
       // Turned about its own point Q at s = pivot (paper Eq. 1 coordinates): the new line
-      // passes through Q, and the readout, fixed to the probe, still reads Q as `pivot`.
+      // passes through Q, and the scale, fixed to the probe, still reads Q as before.
       const double sq = *e.pivot_s_mm * 1e-3;
       const double qx = sq * p.cos_phi + p.a_m * p.sin_phi, qy = sq * p.sin_phi - p.a_m * p.cos_phi;
       p.a_m = qx * s1 - qy * c1;

@@ -1,6 +1,7 @@
 // Everything a tracker needs from a machine: total magnetic field, gaps, probes, particle.
 #pragma once
 
+#include <cmath>
 #include <optional>
 #include <string>
 #include <vector>
@@ -26,6 +27,19 @@ struct ProbeLine {
   double along(double x, double y) const { return x * cos_phi + y * sin_phi; }
   /// Azimuth where the circle of radius r meets the probe line (NaN if r < |a|).
   double crossing_azimuth(double r_m) const;
+  /// A probe-offset effect moved the probe without its readout knowing: phi, a and shift
+  /// above are where it is, a_read_m and shift_read_m what the readout assumes (the machine
+  /// file's values), and recorded radii convert the reading s - shift with the latter.
+  bool hidden_offset = false;
+  double a_read_m = 0, shift_read_m = 0;
+  /// turns.csv's r [m] of a crossing at radius r_m, position s_m along the line: the true
+  /// radius minus the shift, or for a hidden offset the radius the readout's geometry gives
+  /// its reading, hypot(s - shift + shift_read, a_read) - shift_read (the same number when
+  /// nothing is hidden).
+  double recorded_r(double r_m, double s_m) const {
+    if (!hidden_offset) return r_m - shift_m;
+    return std::hypot(s_m - shift_m + shift_read_m, a_read_m) - shift_read_m;
+  }
 };
 
 /// Field effects of the machine file (`field-harmonic`, `sector-strength`) on top of the map

@@ -221,7 +221,7 @@ TrackEnd track_time(const TrackModel& m, const ParticleState& s0, const TrackSet
         TurnRecord tr;
         tr.probe = static_cast<int>(pi);
         tr.turn = probe_count[pi];
-        tr.r_mm = (std::hypot(xc, yc) - pl.shift_m) * 1e3;
+        tr.r_mm = pl.recorded_r(std::hypot(xc, yc), s) * 1e3;
         tr.s_mm = (s - pl.shift_m) * 1e3;
         const double tcr = t + u * dt;
         tr.t_ns = tcr * 1e9;

@@ -22,7 +22,7 @@ struct ParticleState {
 struct TurnRecord {
   int probe = 0;          ///< index into TrackModel::probes
   int turn = 0;           ///< 1 for the first crossing of this probe line, 2 for the next, ...
-  double r_mm = 0;        ///< radius of the crossing point, minus the probe's shift
+  double r_mm = 0;        ///< radius of the crossing point, minus the probe's shift (ProbeLine::recorded_r)
   double s_mm = 0;        ///< position along the probe, minus its shift
   double t_ns = 0;        ///< time since the start
   double energy_MeV = 0;  ///< kinetic energy
