@@ -15,6 +15,7 @@ const char* const kTools[][2] = {
     {"orbit", "equilibrium orbits, tunes and isochronism of a field map"},
     {"track", "accelerated orbits: where each turn crosses each probe"},
     {"synth", "synthetic probe profiles and trim coil phase scans from a truth machine"},
+    {"peakfind", "the turns in a probe profile: positions, heights, widths, flags"},
     {"compare", "measured vs simulated turn radii: errors per probe, objectives, exit 0/1 like diff"},
 };
 

@@ -1,0 +1,682 @@
+// Peak finding in probe profiles: derivative zero-crossings (the paper), Gaussian fits, turn splitting.
+#include "turnfit/peaks/peaks.hpp"
+
+#include <Eigen/Dense>
+#include <algorithm>
+#include <cmath>
+#include <sstream>
+
+#include "turnfit/io/csv.hpp"
+#include "turnfit/io/error.hpp"
+#include "turnfit/io/text.hpp"
+
+namespace turnfit {
+
+// ---------------------------------------------------------------------------------------------
+// Reading profiles
+
+namespace {
+
+/// Value of `key=` in a '#' line's whitespace-separated tokens ("" if absent).
+std::string meta_value(const std::string& line, const std::string& key) {
+  std::istringstream is(line.substr(1));
+  std::string tok;
+  while (is >> tok)
+    if (tok.size() > key.size() && tok.compare(0, key.size() + 1, key + "=") == 0) return tok.substr(key.size() + 1);
+  return {};
+}
+
+}  // namespace
+
+ProbeProfile parse_profile(const std::string& text, const std::string& name) {
+  const CsvTable t = CsvTable::parse(text, name);
+  t.require_columns({"position_mm", "intensity"});
+  const size_t cx = t.column("position_mm"), cy = t.column("intensity");
+  ProbeProfile p;
+  p.name = t.name();
+  for (const auto& c : t.comments()) {
+    // The first value of a key wins; a provenance argv line is the command, not metadata.
+    if (c.rfind("# argv:", 0) == 0) continue;
+    if (std::string v = meta_value(c, "probe"); !v.empty() && p.probe.empty()) p.probe = v;
+    if (std::string v = meta_value(c, "step_mm"); !v.empty() && p.step_mm == 0)
+      p.step_mm = parse_double(v, name, 0, "'# step_mm=' metadata");
+    if (std::string v = meta_value(c, "first_turn"); !v.empty() && p.first_turn == 0) {
+      const double f = parse_double(v, name, 0, "'# first_turn=' metadata");
+      if (f != std::floor(f) || f < 1 || f > 1e9)
+        throw data_error(name, 0, "'# first_turn=" + v + "' metadata: not a turn number (1, 2, ...)");
+      p.first_turn = static_cast<int>(f);
+    }
+  }
+  if (t.rows() < 5)
+    throw data_error(name, 0, "a profile needs at least 5 readings, found " + std::to_string(t.rows()));
+  for (size_t i = 0; i < t.rows(); ++i) {
+    p.position_mm.push_back(t.number(i, cx));
+    p.intensity.push_back(t.number(i, cy));
+    p.line.push_back(t.line(i));
+    if (i > 0 && !(p.position_mm[i] > p.position_mm[i - 1]))
+      throw data_error(name, t.line(i), "position_mm must increase (" + t.cell(i, cx) + " after " +
+                                            t.cell(i - 1, cx) + ")");
+  }
+  // The smoothing and the detector work on the reading index: the readings must be evenly spaced.
+  const size_t n = p.position_mm.size();
+  const double step = (p.position_mm[n - 1] - p.position_mm[0]) / static_cast<double>(n - 1);
+  for (size_t i = 1; i < n; ++i) {
+    const double d = p.position_mm[i] - p.position_mm[i - 1];
+    if (std::abs(d - step) > 0.01 * step)
+      throw data_error(name, p.line[i], "readings are not evenly spaced: step " + std::to_string(d) +
+                                            " mm where the mean step is " + std::to_string(step) + " mm");
+  }
+  return p;
+}
+
+ProbeProfile read_profile(const std::string& path) {
+  InputText in = read_input(path);
+  return parse_profile(in.text, in.name);
+}
+
+std::string peak_flag_string(unsigned flags) {
+  static const char* const names[] = {"merged", "wide", "weak", "gap", "edge"};
+  std::string s;
+  for (unsigned b = 0; b < 5; ++b)
+    if (flags & (1u << b)) s += (s.empty() ? "" : "+") + std::string(names[b]);
+  return s.empty() ? "ok" : s;
+}
+
+// ---------------------------------------------------------------------------------------------
+// Detection and fitting
+
+namespace {
+
+/// One turn's shape: a Gaussian of amplitude a, centre mu and rms sigma.
+struct Gauss {
+  double a = 0, mu = 0, sigma = 1;
+  double mu_var = 0;  ///< variance of mu from the last fit (noise only)
+  unsigned flags = 0;
+  int turns = 1;      ///< turns this peak stands for (more than 1 only for an unsplit wide peak)
+  double mu_lo = -1e300, mu_hi = 1e300;  ///< where the next fit may move mu
+};
+
+double gauss_at(const Gauss& g, double x) {
+  const double u = (x - g.mu) / g.sigma;
+  return g.a * std::exp(-0.5 * u * u);
+}
+
+double median(std::vector<double> v) {
+  if (v.empty()) return 0;
+  const size_t h = v.size() / 2;
+  std::nth_element(v.begin(), v.begin() + static_cast<long>(h), v.end());
+  double m = v[h];
+  if (v.size() % 2 == 0) m = 0.5 * (m + *std::max_element(v.begin(), v.begin() + static_cast<long>(h)));
+  return m;
+}
+
+/// Rms noise of one reading: the median absolute second difference of white noise is
+/// 0.6745 sqrt(6) sigma. Second differences cancel the baseline and most of a smooth signal,
+/// and the median ignores the peaks' flanks when most readings are between turns.
+double noise_estimate(const std::vector<double>& y) {
+  std::vector<double> d2;
+  for (size_t k = 1; k + 1 < y.size(); ++k) d2.push_back(std::abs(y[k + 1] - 2 * y[k] + y[k - 1]));
+  return median(d2) / (0.6745 * std::sqrt(6.0));
+}
+
+/// Baseline b0 + b1 (x - x0): a straight line fitted to the readings that are not signal. Starting
+/// from all readings, those more than 2 noise rms above the line are dropped and the line refitted,
+/// until the set settles: the line sinks to the floor between turns (a constant offset plus a
+/// slow drift, as a wire amplifier has).
+void fit_baseline(const std::vector<double>& x, const std::vector<double>& y, double noise, double& b0,
+                  double& b1) {
+  const size_t n = x.size();
+  std::vector<char> keep(n, 1);
+  b0 = 0;
+  b1 = 0;
+  for (int it = 0; it < 100; ++it) {
+    double sw = 0, sx = 0, sy = 0, sxx = 0, sxy = 0;
+    for (size_t k = 0; k < n; ++k)
+      if (keep[k]) {
+        const double u = x[k] - x[0];
+        sw += 1;
+        sx += u;
+        sy += y[k];
+        sxx += u * u;
+        sxy += u * y[k];
+      }
+    const double det = sw * sxx - sx * sx;
+    if (sw < 2 || !(det > 0)) break;
+    b1 = (sw * sxy - sx * sy) / det;
+    b0 = (sy - b1 * sx) / sw;
+    size_t changed = 0, kept = 0;
+    for (size_t k = 0; k < n; ++k) {
+      const char k_new = y[k] - (b0 + b1 * (x[k] - x[0])) <= 2 * noise;
+      changed += k_new != keep[k];
+      keep[k] = k_new;
+      kept += k_new;
+    }
+    if (changed == 0 || kept < 2) break;
+  }
+}
+
+/// Gaussian smoothing with rms `sigma_bins` (kernel to 4 sigma, renormalized at the ends so the
+/// level of the profile is kept there).
+std::vector<double> gaussian_smooth(const std::vector<double>& y, double sigma_bins) {
+  const long n = static_cast<long>(y.size());
+  const long h = std::max(1L, static_cast<long>(std::ceil(4 * sigma_bins)));
+  std::vector<double> w(static_cast<size_t>(2 * h + 1));
+  for (long j = -h; j <= h; ++j) w[static_cast<size_t>(j + h)] = std::exp(-0.5 * j * j / (sigma_bins * sigma_bins));
+  std::vector<double> out(y.size());
+  for (long k = 0; k < n; ++k) {
+    double s = 0, sw = 0;
+    for (long j = std::max(-h, -k); j <= std::min(h, n - 1 - k); ++j) {
+      s += w[static_cast<size_t>(j + h)] * y[static_cast<size_t>(k + j)];
+      sw += w[static_cast<size_t>(j + h)];
+    }
+    out[static_cast<size_t>(k)] = s / sw;
+  }
+  return out;
+}
+
+/// Levenberg-Marquardt fit of a sum of Gaussians to r[k] at x[k] (Press et al., Numerical Recipes
+/// 15.5; parameters a, mu, ln sigma so that sigma stays positive). Centres are kept in [lo, hi]
+/// and each in its own [mu_lo, mu_hi]; widths in [smin, smax]. Returns the residual sum of squares; sets each mu_var from the
+/// inverse normal matrix times noise^2.
+double lm_fit(const double* x, const double* r, long n, std::vector<Gauss>& g, double lo, double hi, double smin,
+              double smax, double noise) {
+  const long m = static_cast<long>(g.size()), np = 3 * m;
+  if (m == 0 || n < np) return 0;
+  using Eigen::MatrixXd;
+  using Eigen::VectorXd;
+  auto pack = [&](const std::vector<Gauss>& gs) {
+    VectorXd p(np);
+    for (long i = 0; i < m; ++i) p.segment<3>(3 * i) << gs[static_cast<size_t>(i)].a, gs[static_cast<size_t>(i)].mu,
+        std::log(gs[static_cast<size_t>(i)].sigma);
+    return p;
+  };
+  auto model_rss = [&](const VectorXd& p, MatrixXd* jac, VectorXd* res) {
+    double rss = 0;
+    for (long k = 0; k < n; ++k) {
+      double f = 0;
+      for (long i = 0; i < m; ++i) {
+        const double a = p(3 * i), mu = p(3 * i + 1), s = std::exp(p(3 * i + 2));
+        const double u = (x[k] - mu) / s, e = std::exp(-0.5 * u * u);
+        f += a * e;
+        if (jac) {
+          (*jac)(k, 3 * i) = e;
+          (*jac)(k, 3 * i + 1) = a * e * u / s;
+          (*jac)(k, 3 * i + 2) = a * e * u * u;
+        }
+      }
+      const double d = r[k] - f;
+      if (res) (*res)(k) = d;
+      rss += d * d;
+    }
+    return rss;
+  };
+  auto clamp = [&](VectorXd& p) {
+    for (long i = 0; i < m; ++i) {
+      const Gauss& gi = g[static_cast<size_t>(i)];
+      p(3 * i + 1) = std::clamp(p(3 * i + 1), std::max(lo, gi.mu_lo), std::min(hi, gi.mu_hi));
+      p(3 * i + 2) = std::clamp(p(3 * i + 2), std::log(smin), std::log(smax));
+    }
+  };
+  VectorXd p = pack(g);
+  clamp(p);
+  MatrixXd J(n, np);
+  VectorXd res(n);
+  double rss = model_rss(p, &J, &res);
+  double lambda = 1e-3;
+  for (int it = 0; it < 200; ++it) {
+    const MatrixXd A = J.transpose() * J;
+    const VectorXd b = J.transpose() * res;
+    bool improved = false;
+    while (lambda < 1e12) {
+      MatrixXd Al = A;
+      for (long j = 0; j < np; ++j) Al(j, j) += lambda * std::max(A(j, j), 1e-300);
+      VectorXd trial = p + Al.ldlt().solve(b);
+      clamp(trial);
+      const double rt = model_rss(trial, nullptr, nullptr);
+      if (std::isfinite(rt) && rt < rss) {
+        const double gain = rss - rt;
+        p = trial;
+        rss = model_rss(p, &J, &res);
+        lambda = std::max(lambda / 3, 1e-12);
+        improved = gain > 1e-13 * rss + 1e-300;
+        break;
+      }
+      lambda *= 4;
+    }
+    if (!improved) break;
+  }
+  const MatrixXd A = J.transpose() * J;
+  Eigen::LDLT<MatrixXd> ldlt(A);
+  MatrixXd cov = ldlt.solve(MatrixXd::Identity(np, np));
+  for (long i = 0; i < m; ++i) {
+    Gauss& gi = g[static_cast<size_t>(i)];
+    gi.a = p(3 * i);
+    gi.mu = p(3 * i + 1);
+    gi.sigma = std::exp(p(3 * i + 2));
+    const double v = cov(3 * i + 1, 3 * i + 1) * noise * noise;
+    gi.mu_var = std::isfinite(v) && v > 0 ? v : 0;
+  }
+  return rss;
+}
+
+/// The profile and everything derived from it that the fitting steps share.
+struct Work {
+  const std::vector<double>& x;
+  const std::vector<double>& y;
+  std::vector<double> bg;  ///< baseline at each reading
+  double step = 0, noise = 0, scale = 0, smin = 0, smax = 0;
+  long n = 0;
+
+  long index_at(double pos) const {
+    return std::clamp(static_cast<long>(std::floor((pos - x[0]) / step + 0.5)), 0L, n - 1);
+  }
+
+  /// Fits the peaks `block` (indices into g) to the readings in their reach, with every other
+  /// peak and the baseline held fixed, over [lo, hi] (default: 4 widths around the block).
+  /// Returns the residual sum of squares in that window.
+  double fit_block(std::vector<Gauss>& g, const std::vector<size_t>& block, double lo = 1e300,
+                   double hi = -1e300) const {
+    if (lo > hi)
+      for (size_t i : block) {
+        lo = std::min(lo, g[i].mu - 4 * g[i].sigma);
+        hi = std::max(hi, g[i].mu + 4 * g[i].sigma);
+      }
+    const long k0 = index_at(lo), k1 = index_at(hi);
+    std::vector<double> xs, rs;
+    for (long k = k0; k <= k1; ++k) {
+      double f = y[static_cast<size_t>(k)] - bg[static_cast<size_t>(k)];
+      for (size_t j = 0; j < g.size(); ++j)
+        if (std::find(block.begin(), block.end(), j) == block.end() && std::abs(x[static_cast<size_t>(k)] - g[j].mu) < 8 * g[j].sigma)
+          f -= gauss_at(g[j], x[static_cast<size_t>(k)]);
+      xs.push_back(x[static_cast<size_t>(k)]);
+      rs.push_back(f);
+    }
+    // Each centre may move at most 0.45 of the way to its neighbours: two turns cannot swap or
+    // meet in one fit, so a fit cannot trade one turn for another.
+    std::vector<Gauss> sub;
+    for (size_t i : block) {
+      sub.push_back(g[i]);
+      if (i > 0) sub.back().mu_lo = g[i].mu - 0.45 * (g[i].mu - g[i - 1].mu);
+      if (i + 1 < g.size()) sub.back().mu_hi = g[i].mu + 0.45 * (g[i + 1].mu - g[i].mu);
+    }
+    const double rss = lm_fit(xs.data(), rs.data(), static_cast<long>(xs.size()), sub, x[static_cast<size_t>(k0)],
+                              x[static_cast<size_t>(k1)], smin, smax, noise);
+    for (size_t b = 0; b < block.size(); ++b) {
+      const unsigned f = g[block[b]].flags;
+      const int t = g[block[b]].turns;
+      g[block[b]] = sub[b];
+      g[block[b]].flags = f;
+      g[block[b]].turns = t;
+    }
+    return rss;
+  }
+
+  /// Whether peaks i and j overlap enough to be fitted together.
+  static bool overlap(const Gauss& a, const Gauss& b) { return std::abs(a.mu - b.mu) < 4 * (a.sigma + b.sigma); }
+
+  /// Sweeps over all peaks, each fitted with its overlapping neighbours, until the centres settle
+  /// (block coordinate descent: cost grows with the number of turns, not its cube).
+  void refine(std::vector<Gauss>& g) const {
+    for (int sweep = 0; sweep < 8; ++sweep) {
+      double moved = 0;
+      for (size_t i = 0; i < g.size(); ++i) {
+        std::vector<size_t> block;
+        if (i > 0 && overlap(g[i - 1], g[i])) block.push_back(i - 1);
+        block.push_back(i);
+        if (i + 1 < g.size() && overlap(g[i + 1], g[i])) block.push_back(i + 1);
+        const double before = g[i].mu;
+        fit_block(g, block);
+        moved = std::max(moved, std::abs(g[i].mu - before));
+      }
+      std::sort(g.begin(), g.end(), [](const Gauss& a, const Gauss& b) { return a.mu < b.mu; });
+      if (moved < 1e-5 * step) break;
+    }
+  }
+
+  /// Removes what the fit reduced to nothing: amplitude below half the height threshold, or two
+  /// centres within half a width (the fit merged two candidates into one turn). Returns how many.
+  int prune(std::vector<Gauss>& g, double min_amp) const {
+    int dropped = 0;
+    for (size_t i = 0; i < g.size();) {
+      bool drop = g[i].a < min_amp;
+      if (!drop && i + 1 < g.size() && g[i + 1].mu - g[i].mu < 0.5 * std::min(g[i].sigma, g[i + 1].sigma)) {
+        if (g[i + 1].a < g[i].a) {
+          g.erase(g.begin() + static_cast<long>(i) + 1);
+          ++dropped;
+          continue;
+        }
+        drop = true;
+      }
+      if (drop) {
+        g.erase(g.begin() + static_cast<long>(i));
+        ++dropped;
+      } else {
+        ++i;
+      }
+    }
+    return dropped;
+  }
+};
+
+/// Median of v[j] over up to `reach` neighbours on each side of i (i itself left out).
+double neighbour_median(const std::vector<double>& v, size_t i, size_t reach) {
+  std::vector<double> s;
+  for (size_t j = i >= reach ? i - reach : 0; j < std::min(v.size(), i + reach + 1); ++j)
+    if (j != i) s.push_back(v[j]);
+  return s.size() >= 2 ? median(s) : 0;
+}
+
+/// Turn separations from peak q's centre to peak q+1's: a peak standing for k turns has its
+/// centre in the middle of them.
+double turn_steps(const std::vector<Gauss>& g, size_t q) { return 0.5 * (g[q].turns + g[q + 1].turns); }
+
+/// Expected turn separation around the interval (j, j+1): the mean separation over up to 6
+/// intervals on each side, that interval left out. A mean, not a median: an off-centre beam
+/// makes separations alternate (betatron oscillation), and the mean over several turns is the
+/// radius gain per turn. 0 if fewer than 2 intervals.
+double mean_separation(const std::vector<Gauss>& g, size_t j) {
+  if (g.size() < 3) return 0;
+  const size_t lo = j >= 6 ? j - 6 : 0, hi = std::min(g.size() - 1, j + 7);
+  double span = g[hi].mu - g[lo].mu, intervals = 0;
+  for (size_t q = lo; q < hi; ++q) intervals += turn_steps(g, q);
+  if (j + 1 <= hi && j >= lo) {
+    span -= g[j + 1].mu - g[j].mu;
+    intervals -= turn_steps(g, j);
+  }
+  return intervals >= 2 ? span / intervals : 0;
+}
+
+/// Expected separation at peak i: the mean over its neighbourhood without the intervals that
+/// involve i (0 if too few).
+double expected_separation(const std::vector<Gauss>& g, size_t i) {
+  if (g.size() < 4) return 0;
+  const size_t lo = i >= 6 ? i - 6 : 0, hi = std::min(g.size() - 1, i + 6);
+  double span = g[hi].mu - g[lo].mu, intervals = 0;
+  for (size_t q = lo; q < hi; ++q) intervals += turn_steps(g, q);
+  if (i > lo) {
+    span -= g[i].mu - g[i - 1].mu;
+    intervals -= turn_steps(g, i - 1);
+  }
+  if (i < hi) {
+    span -= g[i + 1].mu - g[i].mu;
+    intervals -= turn_steps(g, i);
+  }
+  return intervals >= 2 ? span / intervals : 0;
+}
+
+}  // namespace
+
+PeakResult find_peaks(const std::vector<double>& x, const std::vector<double>& y, const PeakSettings& s,
+                      int first_turn) {
+  if (x.size() != y.size()) throw data_error("find_peaks", 0, "positions and intensities differ in number");
+  if (x.size() < 5) throw data_error("find_peaks", 0, "a profile needs at least 5 readings");
+  for (size_t k = 1; k < x.size(); ++k)
+    if (!(x[k] > x[k - 1])) throw data_error("find_peaks", 0, "positions must increase");
+  PeakResult out;
+  Work w{x, y, {}, 0, 0, 0, 0, 0, static_cast<long>(x.size())};
+  const long n = w.n;
+  w.step = (x.back() - x.front()) / static_cast<double>(n - 1);
+  out.step_mm = w.step;
+  w.noise = noise_estimate(y);
+  double ymax = 0;
+  for (double v : y) ymax = std::max(ymax, std::abs(v));
+  // A noise-free profile still needs a scale for the fit's significance tests.
+  w.noise = std::max(w.noise, 1e-9 * ymax + 1e-300);
+  out.noise = w.noise;
+  fit_baseline(x, y, w.noise, out.baseline_at0, out.baseline_slope);
+  w.bg.resize(x.size());
+  for (size_t k = 0; k < x.size(); ++k) w.bg[k] = out.baseline_at0 + out.baseline_slope * (x[k] - x[0]);
+
+  // 1. The paper's detector: downward zero-crossings of the smoothed first derivative.
+  const double smooth_mm = s.smooth_mm > 0 ? s.smooth_mm : std::max(0.5, w.step);
+  out.smooth_mm = smooth_mm;
+  const std::vector<double> ys = gaussian_smooth(y, smooth_mm / w.step);
+  std::vector<double> d(x.size());
+  for (long k = 0; k < n; ++k) {
+    const long a = std::max(0L, k - 1), b = std::min(n - 1, k + 1);
+    d[static_cast<size_t>(k)] = (ys[static_cast<size_t>(b)] - ys[static_cast<size_t>(a)]) / ((b - a) * w.step);
+  }
+  std::vector<long> tops;
+  for (long k = 0; k + 1 < n; ++k)
+    if (d[static_cast<size_t>(k)] > 0 && d[static_cast<size_t>(k + 1)] <= 0)
+      tops.push_back(ys[static_cast<size_t>(k + 1)] > ys[static_cast<size_t>(k)] ? k + 1 : k);
+  out.candidates = static_cast<int>(tops.size());
+  auto above = [&](long k) { return ys[static_cast<size_t>(k)] - w.bg[static_cast<size_t>(k)]; };
+  for (long k : tops) out.scale = std::max(out.scale, above(k));
+  w.scale = out.scale;
+  if (!(out.scale > 0)) {
+    out.rejected = out.candidates;
+    return out;
+  }
+  // Noise of the smoothed profile: white noise averaged over 2 sqrt(pi) sigma / step readings.
+  const double noise_s = w.noise / std::sqrt(std::max(1.0, 2 * std::sqrt(M_PI) * smooth_mm / w.step));
+  auto valley = [&](long a, long b) {  // lowest smoothed reading in [a, b]
+    long v = a;
+    for (long k = a; k <= b; ++k)
+      if (ys[static_cast<size_t>(k)] < ys[static_cast<size_t>(v)]) v = k;
+    return v;
+  };
+  // Thresholds, applied until nothing changes: a rejected candidate's bump joins its neighbour's
+  // region, which changes that neighbour's area and slope.
+  // Relative thresholds alone would find "turns" in a profile of pure noise: a top must also
+  // stand 5 noise rms (of the smoothed profile) above the baseline.
+  std::vector<long> acc;
+  for (long k : tops)
+    if (above(k) >= s.min_height * out.scale && above(k) >= 5 * noise_s) acc.push_back(k);
+  for (bool changed = true; changed;) {
+    changed = false;
+    // Prominence: a dip between two tops smaller than 3 noise rms (plus 0.5% of the height, for
+    // the shot noise on the tops) is noise on one turn, not two turns; the lower top goes.
+    for (size_t i = 0; i + 1 < acc.size(); ++i) {
+      const long v = valley(acc[i], acc[i + 1]);
+      const double lower = std::min(ys[static_cast<size_t>(acc[i])], ys[static_cast<size_t>(acc[i + 1])]);
+      if (lower - ys[static_cast<size_t>(v)] < 3 * noise_s + 0.005 * (lower - w.bg[static_cast<size_t>(v)])) {
+        acc.erase(acc.begin() + static_cast<long>(ys[static_cast<size_t>(acc[i])] < ys[static_cast<size_t>(acc[i + 1])] ? i : i + 1));
+        changed = true;
+        break;
+      }
+    }
+    if (changed) continue;
+    for (size_t i = 0; i < acc.size(); ++i) {
+      const long l = valley(i > 0 ? acc[i - 1] : 0, acc[i]);
+      const long r = valley(acc[i], i + 1 < acc.size() ? acc[i + 1] : n - 1);
+      double area = 0, slope = 0;
+      for (long k = l; k <= r; ++k) {
+        area += std::max(0.0, above(k)) * w.step;
+        slope = std::max(slope, k <= acc[i] ? d[static_cast<size_t>(k)] : -d[static_cast<size_t>(k)]);
+      }
+      if (area < s.min_area * out.scale || slope < s.min_slope * out.scale) {
+        acc.erase(acc.begin() + static_cast<long>(i));
+        changed = true;
+        break;
+      }
+    }
+  }
+  out.rejected = out.candidates - static_cast<int>(acc.size());
+
+  // 2. Starting shapes: height and half width at half maximum on the smoothed profile, on the side
+  // that reaches half height before the next turn (the smoothing taken out again).
+  std::vector<Gauss> g;
+  for (size_t i = 0; i < acc.size(); ++i) {
+    const long t = acc[i];
+    const double h = above(t);
+    const long l = valley(i > 0 ? acc[i - 1] : 0, t), r = valley(t, i + 1 < acc.size() ? acc[i + 1] : n - 1);
+    double hw = 1e300;
+    for (long k = t; k > l; --k)
+      if (above(k - 1) < 0.5 * h) {
+        hw = std::min(hw, x[static_cast<size_t>(t)] - x[static_cast<size_t>(k)] + w.step * (above(k) - 0.5 * h) / (above(k) - above(k - 1)));
+        break;
+      }
+    for (long k = t; k < r; ++k)
+      if (above(k + 1) < 0.5 * h) {
+        hw = std::min(hw, x[static_cast<size_t>(k)] - x[static_cast<size_t>(t)] + w.step * (above(k) - 0.5 * h) / (above(k) - above(k + 1)));
+        break;
+      }
+    if (hw > 1e299) hw = 0.25 * (x[static_cast<size_t>(r)] - x[static_cast<size_t>(l)]);
+    const double sg = std::sqrt(std::max(std::pow(hw / std::sqrt(2 * std::log(2.0)), 2) - smooth_mm * smooth_mm, w.step * w.step));
+    Gauss gi;
+    gi.a = h;
+    gi.mu = x[static_cast<size_t>(t)];
+    gi.sigma = sg;
+    g.push_back(gi);
+  }
+  // Turns of one profile have similar widths: a fitted width may range from 0.3 to 3 times the
+  // typical starting width, so that a turn cannot spread over its neighbours' readings.
+  {
+    std::vector<double> sg;
+    for (const auto& gi : g) sg.push_back(gi.sigma);
+    const double typical = median(sg);
+    w.smin = std::max(0.25 * w.step, 0.3 * typical);
+    w.smax = std::max(w.smin, 3 * typical);
+    for (auto& gi : g) gi.sigma = std::clamp(gi.sigma, w.smin, w.smax);
+  }
+
+  // 3. Fit all turns; drop what the fit reduces to nothing.
+  const double min_amp = 0.5 * s.min_height * out.scale;
+  w.refine(g);
+  while (int dropped = w.prune(g, min_amp)) {
+    out.dropped += dropped;
+    w.refine(g);
+  }
+
+  // 4. Turns that merge. In a CW beam every turn carries the same current, so every turn's peak
+  // has the same area; a peak with about k times its neighbours' area holds k turns closer than
+  // the beam is wide. Try k turns of the neighbours' width in its place; keep them if they fit
+  // the same readings better by far more than the noise, keep their order, stay of similar size
+  // and no farther apart than 1.5 expected separations. Otherwise the peak stays one, flagged wide.
+  for (int round = 0; s.split_area > 0 && round < 3; ++round) {
+    bool any = false;
+    for (size_t i = 0; i < g.size(); ++i) {
+      if (g[i].flags & (kPeakMerged | kPeakWide)) continue;
+      std::vector<double> area(g.size()), sig(g.size());
+      for (size_t j = 0; j < g.size(); ++j) {
+        area[j] = g[j].a * g[j].sigma;
+        sig[j] = g[j].sigma;
+      }
+      // One turn's area: the neighbours', unless most of them hold two turns too (then the
+      // whole profile's median, where most turns are resolved, knows better).
+      const double ae = std::min(neighbour_median(area, i, 6), median(area));
+      if (!(ae > 0) || area[i] < s.split_area * ae) continue;
+      const int k = std::clamp(static_cast<int>(std::lround(area[i] / ae)), 2, 4);
+      if (!s.split) {
+        g[i].flags |= kPeakWide;
+        g[i].turns = k;
+        continue;
+      }
+      const double se = std::min({neighbour_median(sig, i, 6), median(sig), g[i].sigma});
+      const double de = expected_separation(g, i);
+      std::vector<size_t> block;
+      if (i > 0 && Work::overlap(g[i - 1], g[i])) block.push_back(i - 1);
+      block.push_back(i);
+      if (i + 1 < g.size() && Work::overlap(g[i + 1], g[i])) block.push_back(i + 1);
+      double lo = 1e300, hi = -1e300;
+      for (size_t j : block) {
+        lo = std::min(lo, g[j].mu - 4 * g[j].sigma);
+        hi = std::max(hi, g[j].mu + 4 * g[j].sigma);
+      }
+      std::vector<Gauss> one = g;
+      const double rss1 = w.fit_block(one, block, lo, hi);
+      // k turns with the wide peak's area and second moment (k evenly spaced, h apart).
+      const double h = std::sqrt(std::max(12 * (g[i].sigma * g[i].sigma - se * se) / (k * k - 1), 0.25 * se * se));
+      std::vector<Gauss> many(g.begin(), g.begin() + static_cast<long>(i));
+      for (int c = 0; c < k; ++c) {
+        Gauss t = g[i];
+        t.mu += (c - 0.5 * (k - 1)) * h;
+        t.sigma = se;
+        t.a = g[i].a * g[i].sigma / (k * se);
+        t.flags = kPeakMerged;
+        many.push_back(t);
+      }
+      many.insert(many.end(), g.begin() + static_cast<long>(i) + 1, g.end());
+      std::vector<size_t> block2;
+      if (block.front() + 1 == i) block2.push_back(i - 1);
+      for (int c = 0; c < k; ++c) block2.push_back(i + static_cast<size_t>(c));
+      if (block.back() == i + 1) block2.push_back(i + static_cast<size_t>(k));
+      const double rss2 = w.fit_block(many, block2, lo, hi);
+      bool ok = rss1 - rss2 > 25 * w.noise * w.noise;
+      double amin = 1e300, amax = 0;
+      for (int c = 0; c < k; ++c) {
+        const Gauss& t = many[i + static_cast<size_t>(c)];
+        amin = std::min(amin, t.a);
+        amax = std::max(amax, t.a);
+        ok = ok && t.sigma >= 0.5 * se && t.sigma <= 2 * se;
+        if (c > 0) {
+          const double sep = t.mu - many[i + static_cast<size_t>(c) - 1].mu;
+          ok = ok && sep > 0.25 * se && (!(de > 0) || sep <= 1.5 * de);
+        }
+      }
+      ok = ok && amin > 0 && amin >= 0.25 * amax;
+      // The neighbours keep their place: the new turns must not take their readings.
+      if (i > 0) ok = ok && many[i - 1].mu < many[i].mu && std::abs(many[i - 1].mu - g[i - 1].mu) < 0.5 * se;
+      if (i + 1 < g.size())
+        ok = ok && many[i + static_cast<size_t>(k)].mu > many[i + static_cast<size_t>(k) - 1].mu &&
+             std::abs(many[i + static_cast<size_t>(k)].mu - g[i + 1].mu) < 0.5 * se;
+      if (ok) {
+        g = std::move(many);
+        ++out.splits;
+        any = true;
+        i += static_cast<size_t>(k) - 1;
+      } else {
+        g[i].flags |= kPeakWide;
+        g[i].turns = k;
+      }
+    }
+    if (!any) break;
+    w.refine(g);
+  }
+
+  // 5. Flags and turn numbers.
+  std::vector<double> area(g.size());
+  for (size_t i = 0; i < g.size(); ++i) area[i] = g[i].a * g[i].sigma / g[i].turns;
+  const double median_area = median(area);
+  int turn = first_turn;
+  for (size_t i = 0; i < g.size(); ++i) {
+    Gauss& gi = g[i];
+    const double na = std::min(neighbour_median(area, i, 6), median_area);
+    if (gi.a < 2 * s.min_height * out.scale || (na > 0 && area[i] < 0.5 * na)) gi.flags |= kPeakWeak;
+    if (gi.mu - 3 * gi.sigma < x.front() || gi.mu + 3 * gi.sigma > x.back()) gi.flags |= kPeakEdge;
+    if (i > 0) {
+      // A peak of k unresolved turns stands for k turn numbers.
+      turn += g[i - 1].turns;
+      // A gap: this interval much longer than the mean around it (the gap itself left out).
+      const double de = mean_separation(g, i - 1);
+      const double gap = gi.mu - g[i - 1].mu;
+      const double steps = turn_steps(g, i - 1);
+      if (s.gap_ratio > 0 && de > 0 && gap >= s.gap_ratio * de * steps) {
+        const int missing = std::max(1, static_cast<int>(std::lround(gap / de - steps)));
+        gi.flags |= kPeakGap;
+        turn += missing;
+        out.skipped_turns += missing;
+      }
+    }
+    Peak pk;
+    pk.turn = turn;
+    pk.r_mm = gi.mu;
+    pk.r_err_mm = std::sqrt(gi.mu_var);
+    pk.height = gi.a;
+    pk.width_mm = gi.sigma;
+    pk.area = gi.a * gi.sigma * std::sqrt(2 * M_PI);
+    pk.flags = gi.flags;
+    if (s.centroid) {
+      // Deblended centroid: the readings minus the baseline and every other turn's fitted shape,
+      // weighted over mu +- 3 sigma with fractional end readings, so the window slides smoothly
+      // across the reading grid.
+      const double lo = gi.mu - 3 * gi.sigma, hi = gi.mu + 3 * gi.sigma;
+      double sw = 0, sx = 0;
+      for (long k = w.index_at(lo); k <= w.index_at(hi); ++k) {
+        const double xk = x[static_cast<size_t>(k)];
+        const double frac = std::clamp(std::min(xk + 0.5 * w.step, hi) - std::max(xk - 0.5 * w.step, lo), 0.0, w.step) / w.step;
+        double v = y[static_cast<size_t>(k)] - w.bg[static_cast<size_t>(k)];
+        for (size_t j = 0; j < g.size(); ++j)
+          if (j != i && std::abs(xk - g[j].mu) < 8 * g[j].sigma) v -= gauss_at(g[j], xk);
+        sw += frac * v;
+        sx += frac * v * xk;
+      }
+      if (sw > 0) pk.r_mm = sx / sw;
+    }
+    out.peaks.push_back(pk);
+  }
+  return out;
+}
+
+}  // namespace turnfit
