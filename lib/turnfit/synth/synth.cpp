@@ -99,7 +99,8 @@ double interpolate(const std::vector<double>& r, const std::vector<double>& y, d
 void phase_history(const Machine& m, const TrackModel& model, const TrackSettings& st, std::vector<double>& r,
                    std::vector<double>& psi) {
   std::vector<TurnRecord> rec;
-  track_particle(model, injection_state(*m.injection, m.particle.mass_MeV), st, rec);
+  // effective_injection: an injection-offset effect of the truth moves the start too.
+  track_particle(model, injection_state(effective_injection(m), m.particle.mass_MeV), st, rec);
   const std::vector<double> ph = crest_phases(m, model, model.probes.front(), rec);
   r.clear();
   psi.clear();
@@ -283,7 +284,7 @@ SynthResult synthesize(const Machine& truth, const SynthSettings& s) {
     starts.reserve(offs.size());
     for (size_t i = 0; i < offs.size(); ++i) {
       try {
-        starts.push_back(offset_state(*run.injection, run.particle.mass_MeV, model.rf_MHz, offs[i]));
+        starts.push_back(offset_state(effective_injection(run), run.particle.mass_MeV, model.rf_MHz, offs[i]));
       } catch (const Error& e) {
         throw Error(e.code(), std::string(e.what()) + " (particle " + std::to_string(i) + ")");
       }

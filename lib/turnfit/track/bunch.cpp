@@ -128,7 +128,12 @@ std::vector<ProbeHistogram> empty_histograms(const TrackModel& m) {
     // Bins on the recorded radius (turns.csv's r_mm: true radius minus the shift) over the
     // radii the probe spans; for an offset probe these differ from s by a^2 / (2 s).
     const ProbeLine& pl = m.probes[p];
-    auto recorded_r = [&](double s) { return (std::hypot(s + pl.shift_m, pl.a_m) - pl.shift_m) * 1e3; };
+    // The probe's ends sit at s + shift along its line; their recorded radii are what the
+    // crossings there record (ProbeLine::recorded_r, which also handles a hidden probe-offset).
+    auto recorded_r = [&](double s) {
+      const double at = s + pl.shift_m;
+      return pl.recorded_r(std::hypot(at, pl.a_m), at) * 1e3;
+    };
     h[p].lo_mm = recorded_r(pl.s_min_m);
     h[p].step_mm = pl.step_m * 1e3;
     const double span = recorded_r(pl.s_max_m) - h[p].lo_mm;
