@@ -112,10 +112,13 @@ double median(std::vector<double> v) {
 
 /// Rms noise of one reading: the median absolute second difference of white noise is
 /// 0.6745 sqrt(6) sigma. Second differences cancel the baseline and most of a smooth signal,
-/// and the median ignores the peaks' flanks when most readings are between turns.
+/// and the median ignores the peaks' flanks when most readings are between turns. Runs of
+/// identical readings (the empty bins of a histogram of counts) carry no noise to measure and
+/// are left out, else a histogram would seem noise-free and every count a turn.
 double noise_estimate(const std::vector<double>& y) {
   std::vector<double> d2;
-  for (size_t k = 1; k + 1 < y.size(); ++k) d2.push_back(std::abs(y[k + 1] - 2 * y[k] + y[k - 1]));
+  for (size_t k = 1; k + 1 < y.size(); ++k)
+    if (!(y[k - 1] == y[k] && y[k] == y[k + 1])) d2.push_back(std::abs(y[k + 1] - 2 * y[k] + y[k - 1]));
   return median(d2) / (0.6745 * std::sqrt(6.0));
 }
 

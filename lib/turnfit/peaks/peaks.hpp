@@ -34,7 +34,7 @@ struct PeakSettings {
   bool split = true;           ///< fit k turns into a peak of k turns' area (else flag it wide)
   double split_area = 1.5;     ///< a peak with this many times its neighbours' area holds more than one turn (0: never split)
   double gap_ratio = 1.8;      ///< a separation this many times the expected one skips turn numbers (0: never)
-  bool centroid = false;       ///< report the deblended centroid instead of the fitted centre
+  bool centroid = true;        ///< report the deblended centroid (false: the fitted centre)
 };
 
 /// Why a peak is less certain than a clean, isolated turn (bit flags; none means "ok").

@@ -18,7 +18,7 @@ struct PeakfindOptions {
   int first_turn = 0;          ///< 0: the profile's `first_turn=`, else 1
   PeakSettings settings;
   bool no_split = false;       ///< --no-split
-  std::string position = "fit";  ///< fit or centroid
+  std::string position = "centroid";  ///< centroid or fit
 };
 
 /// Registers turnfit-peakfind's options.
