@@ -55,18 +55,6 @@ TrackModel uniform(double B = kB0) {
   return m;
 }
 
-ProbeLine probe(const std::string& name, double phi_deg, double a_mm = 0, double s_min_mm = 300,
-                double s_max_mm = 3900) {
-  ProbeLine p;
-  p.name = name;
-  p.phi_rad = phi_deg * kDeg;
-  p.sin_phi = std::sin(p.phi_rad);
-  p.cos_phi = std::cos(p.phi_rad);
-  p.a_m = a_mm * 1e-3;
-  p.s_min_m = s_min_mm * 1e-3;
-  p.s_max_m = s_max_mm * 1e-3;
-  return p;
-}
 
 /// A straight radial gap (pdis 0) at `angle_deg` over [rmin, rmax].
 Gap gap(const std::string& name, double angle_deg, double volt_MV, double rmin_mm, double rmax_mm, double rf_MHz,
@@ -286,7 +274,7 @@ TEST_CASE("effects: zero-size effects give identical tracks", "[effects][track]"
   base.coils.emplace_back(TrimCoil{"TC7", "psi-bfield", 1000, 3000, 5e-4, {1}, {}, 0, "", {}, 0, 360}, 4);
   for (auto& c : base.coils) c.tabulate(0.2, 4.0);  // as apply_effects rebuilds them
   base.gaps.push_back(gap("g1", 90, 0.2, 1500, 2500, base.rf_MHz, 100, VoltageProfile::parse("2\n0 0.8 0.4\n1 1.2 0.4\n", "p")));
-  base.probes = {probe("P90", 90), probe("P180", 180)};
+  base.probes = {test::probe("P90", 90), test::probe("P180", 180)};
   Machine m = with_effects(json::parse(R"([
     {"type": "field-harmonic", "amplitude_T": 0, "phase_deg": 30, "r_mm": 2000, "width_mm": 300},
     {"type": "sector-strength", "sector": 3, "relative": 0},
@@ -357,7 +345,7 @@ TEST_CASE("effects: a first harmonic in a uniform field grows the coherent ampli
   const double growth_mm = kPi * kR * a * 1e3;  // 0.126 mm per turn
   for (double phi : {0.0, 90.0}) {
     TrackModel m = uniform();
-    m.probes = {probe("P90", 90), probe("P180", 180)};
+    m.probes = {test::probe("P90", 90), test::probe("P180", 180)};
     json e = {{"type", "field-harmonic"}, {"amplitude_T", A}, {"phase_deg", phi}};
     apply_effects(m, with_effects(json::array({e})).effect_set);
     for (const char* integ : kIntegrators) {
@@ -386,7 +374,7 @@ TEST_CASE("effects: a first harmonic bump with nu_r^2 = 1 + k displaces the clos
   TrackModel m = uniform();
   PolarGrid g = m.map.grid();
   m.map = make_field_map(g, [&](double r, double) { return kB0 * std::pow(r / kR, k); }, "power law");
-  m.probes = {probe("P90", 90), probe("P180", 180), probe("P270", 270)};
+  m.probes = {test::probe("P90", 90), test::probe("P180", 180), test::probe("P270", 270)};
   apply_effects(m, with_effects(json::parse(R"([{"type": "field-harmonic", "amplitude_T": 1e-3, "phase_deg": 0,
                                                  "r_mm": 2000, "width_mm": 300}])")).effect_set);
   for (const char* integ : kIntegrators) {
@@ -407,7 +395,7 @@ TEST_CASE("effects: a first harmonic bump with nu_r^2 = 1 + k displaces the clos
 TEST_CASE("effects: the same sector-strength on every sector is the scaled field", "[effects][field]") {
   const double eps = 0.003, e0 = energy_on(kB0, kR);
   TrackModel scaled = uniform(kB0 * (1 + eps)), fx = uniform();
-  for (TrackModel* m : {&scaled, &fx}) m->probes = {probe("P90", 90), probe("P200", 200)};
+  for (TrackModel* m : {&scaled, &fx}) m->probes = {test::probe("P90", 90), test::probe("P200", 200)};
   json list = json::array();
   for (int s = 1; s <= 4; ++s) list.push_back({{"type", "sector-strength"}, {"sector", s}, {"relative", eps}});
   apply_effects(fx, with_effects(list).effect_set);
@@ -443,7 +431,7 @@ TEST_CASE("effects: one stronger sector drives the first harmonic of its window"
   const double a1 = 2 / kPi * std::sin(kPi / 4) * K;
   const double growth_mm = kPi * kR * eps * a1 * 1e3;
   TrackModel m = uniform();
-  m.probes = {probe("P90", 90), probe("P180", 180), probe("P0", 0)};
+  m.probes = {test::probe("P90", 90), test::probe("P180", 180), test::probe("P0", 0)};
   apply_effects(m, with_effects(json::parse(R"([{"type": "sector-strength", "sector": 2, "relative": 1e-4}])")).effect_set);
   for (const char* integ : kIntegrators) {
     INFO(integ);
@@ -473,7 +461,7 @@ TEST_CASE("effects: trimcoil-sectors restricts a coil to its sectors", "[effects
   auto period_ns = [&](double B) { return 2 * kPi * gamma * kMass * 1e6 / (kC * kC * B) * 1e9; };
   TrackModel base = uniform();
   base.coils.emplace_back(TrimCoil{"TC6", "psi-bfield", 1000, 3000, dB, {1}, {}, 0, "", {}, 0, 360}, 4);
-  base.probes = {probe("P90", 90)};
+  base.probes = {test::probe("P90", 90)};
   TrackModel odd = base, all = base, direct = base;
   apply_effects(odd, with_effects(json::parse(R"([{"type": "trimcoil-sectors", "coils": ["TC6"], "sectors": [1, 3]}])")).effect_set);
   apply_effects(all, with_effects(json::parse(R"([{"type": "trimcoil-sectors", "coils": ["TC6"], "sectors": [4, 3, 2, 1]}])")).effect_set);
@@ -567,7 +555,7 @@ TEST_CASE("effects: an accelerating bowed gap gives the same turns in both integ
   const double e1 = energy_on(kB0, 2.4);
   TrackModel m = uniform();
   m.gaps.push_back(gap("g1", 90, 1.0, 1100, 2900, m.rf_MHz, 90));
-  m.probes = {probe("P180", 180), probe("P300", 300)};
+  m.probes = {test::probe("P180", 180), test::probe("P300", 300)};
   TrackModel straight = m;
   apply_effects(m, with_effects(json::parse(R"([{"type": "gap-bow", "cavity": "g1", "sagitta_mm": 40}])")).effect_set);
   const Run az = track(m, start(e1, 2.4), "azimuth", 5.3), rk = track(m, start(e1, 2.4), "rk4", 5.3, 11520);
@@ -649,9 +637,9 @@ TEST_CASE("effects: probe-offset moves the probe and not its readout", "[effects
   };
   // Turned about the machine centre: the same as phi_deg + dphi, an offset probe too.
   TrackModel base = uniform();
-  base.probes = {probe("P90", 90, 40)};
+  base.probes = {test::probe("P90", 90, 40)};
   TrackModel turned = base, fx = base;
-  turned.probes[0] = probe("P90", 90.7, 40);
+  turned.probes[0] = test::probe("P90", 90.7, 40);
   apply_effects(fx, with_effects(json::parse(R"([{"type": "probe-offset", "probe": "P90", "dphi_deg": 0.7}])")).effect_set);
   for (const char* integ : kIntegrators) {
     INFO(integ);
@@ -668,7 +656,7 @@ TEST_CASE("effects: probe-offset moves the probe and not its readout", "[effects
   }
   // ds alone on a radial probe is the probe's own shift: every reading drops by ds.
   TrackModel radial = uniform();
-  radial.probes = {probe("P90", 90)};
+  radial.probes = {test::probe("P90", 90)};
   TrackModel shifted = radial, ds = radial;
   shifted.probes[0].shift_m = -0.004;
   apply_effects(ds, with_effects(json::parse(R"([{"type": "probe-offset", "probe": "P90", "ds_mm": -4}])")).effect_set);
@@ -688,7 +676,7 @@ TEST_CASE("effects: probe-offset moves the probe and not its readout", "[effects
   // radius (1.96 mm low); the probe's own a = 30 mm would have reported R2.
   const double R2 = 2.3, e2 = energy_on(kB0, R2), da = 0.03;
   TrackModel side = radial, side_a = radial;
-  side_a.probes[0] = probe("P90", 90, 30);
+  side_a.probes[0] = test::probe("P90", 90, 30);
   apply_effects(side, with_effects(json::parse(R"([{"type": "probe-offset", "probe": "P90", "da_mm": 30}])")).effect_set);
   for (const char* integ : kIntegrators) {
     INFO(integ);
@@ -766,7 +754,7 @@ TEST_CASE("effects: an injection offset in a uniform field is the displaced circ
   Machine mach = with_effects(json::parse(R"([{"type": "injection-offset", "dr_mm": 3, "dpr_mrad": 2}])"), doc);
   const ParticleState s0 = injection_state(effective_injection(mach), kMass);
   TrackModel m = uniform();
-  m.probes = {probe("P90", 90), probe("P180", 180), probe("P270", 270)};
+  m.probes = {test::probe("P90", 90), test::probe("P180", 180), test::probe("P270", 270)};
   const double cx = kR + dr - kR * std::cos(alpha), cy = kR * std::sin(alpha);
   for (const char* integ : kIntegrators) {
     INFO(integ);

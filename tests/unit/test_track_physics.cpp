@@ -66,19 +66,6 @@ TrackModel iso_model() {
   return m;
 }
 
-ProbeLine probe(const std::string& name, double phi_deg, double a_mm = 0, double shift_mm = 0,
-                double s_min_mm = 200, double s_max_mm = 5000) {
-  ProbeLine p;
-  p.name = name;
-  p.phi_rad = phi_deg * kDeg;
-  p.sin_phi = std::sin(p.phi_rad);
-  p.cos_phi = std::cos(p.phi_rad);
-  p.a_m = a_mm * 1e-3;
-  p.shift_m = shift_mm * 1e-3;
-  p.s_min_m = s_min_mm * 1e-3;
-  p.s_max_m = s_max_mm * 1e-3;
-  return p;
-}
 
 /// A radial gap (pdis 0) at `angle_deg` from 1.8 to 5.0 m, phased so that a particle on the
 /// isochronous orbit started at azimuth 0 at t = 0 crosses it at RF phase `at_phase_deg`:
@@ -132,7 +119,7 @@ TEST_CASE("track physics: energy gain per turn on crest is the sum of V V_n(rho_
   TrackModel m = iso_model();
   for (int i = 0; i < 4; ++i)
     m.gaps.push_back(iso_gap("g" + std::to_string(i), 45 + 90 * i, V, gap_mm, 1, 0, quadratic_profile()));
-  m.probes.push_back(probe("P0", 0));
+  m.probes.push_back(test::probe("P0", 0));
   const double e0 = 72;
   for (const char* integ : kIntegrators) {
     INFO(integ);
@@ -214,7 +201,7 @@ TEST_CASE("track physics: on crest in an isochronous field, 72 -> 590 MeV takes 
   const double V = 1.0;
   TrackModel m = iso_model();
   for (int i = 0; i < 4; ++i) m.gaps.push_back(iso_gap("g" + std::to_string(i), 45 + 90 * i, V, 0));
-  m.probes.push_back(probe("P0", 0));
+  m.probes.push_back(test::probe("P0", 0));
   const double gain = 4 * V;
   const int expected = static_cast<int>(std::ceil((590.0 - 72.0) / gain));
   for (const char* integ : kIntegrators) {
@@ -252,7 +239,7 @@ TEST_CASE("track physics: static fields conserve energy to 1e-10 over 200 turns"
   // sees the field gradient; RK4 in time does not conserve |p| exactly (at 2880 steps per turn
   // it must stay within 1e-10), the azimuth scheme holds p constant between gaps by design.
   TrackModel m = iso_model();
-  m.probes.push_back(probe("P0", 0));
+  m.probes.push_back(test::probe("P0", 0));
   const double e0 = 72;
   for (const char* integ : kIntegrators) {
     INFO(integ);
@@ -276,7 +263,7 @@ TEST_CASE("track physics: the centred orbit of the isochronous field is the circ
   // Without RF, a particle started on r(E) = beta c / omega with p_r = 0 stays on that circle
   // (p = q B(r) r there) and crosses the probe every h / f_rf, whatever its energy.
   TrackModel m = iso_model();
-  m.probes.push_back(probe("P90", 90));
+  m.probes.push_back(test::probe("P90", 90));
   for (double e : {72.0, 590.0}) {
     for (const char* integ : kIntegrators) {
       INFO(integ << " at " << e << " MeV");
@@ -323,7 +310,7 @@ TEST_CASE("track physics: probe crossings of an off-centred circle in a uniform 
   };
   const std::vector<P> ps = {{90, 0, 0}, {200, 300, 0}, {-60, -250, 2}, {0, 0, 0}, {135, 150, -1.5}};
   for (size_t i = 0; i < ps.size(); ++i)
-    m.probes.push_back(probe("P" + std::to_string(i), ps[i].phi_deg, ps[i].a_mm, ps[i].shift_mm));
+    m.probes.push_back(test::probe("P" + std::to_string(i), ps[i].phi_deg, ps[i].a_mm, ps[i].shift_mm));
   // Start at azimuth 30 deg, 150 mm outside the circle's radius, moving along the azimuth:
   // the centre is 150 mm from the machine centre, the orbit spans r = R - 150 .. R + 150 mm.
   Injection inj;
@@ -378,8 +365,8 @@ TEST_CASE("track physics: a probe shift moves every recorded radius by exactly t
   const double shift_mm = 1.0;
   TrackModel m = iso_model();
   for (int i = 0; i < 4; ++i) m.gaps.push_back(iso_gap("g" + std::to_string(i), 45 + 90 * i, 1.0, 250));
-  m.probes.push_back(probe("nominal", 170, 40));
-  m.probes.push_back(probe("shifted", 170, 40, shift_mm));
+  m.probes.push_back(test::probe("nominal", 170, 40));
+  m.probes.push_back(test::probe("shifted", 170, 40, shift_mm));
   TrackSettings st;
   st.turns = 30.01;
   std::vector<TurnRecord> turns;
@@ -403,7 +390,7 @@ TEST_CASE("track physics: a probe shift moves every recorded radius by exactly t
     // probe starts 0.5 mm above it and misses that turn.
     const double s1 = a[0].s_mm;
     TrackModel m2 = m;
-    m2.probes = {probe("nominal", 170, 40, 0, s1 - 0.5), probe("shifted", 170, 40, shift_mm, s1 - 0.5)};
+    m2.probes = {test::probe("nominal", 170, 40, 0, s1 - 0.5), test::probe("shifted", 170, 40, shift_mm, s1 - 0.5)};
     std::vector<TurnRecord> t2;
     REQUIRE_FALSE(track_particle(m2, iso_start(72, -0.005), st, t2).lost);
     const auto a2 = of_probe(t2, 0), b2 = of_probe(t2, 1);
@@ -454,7 +441,7 @@ TEST_CASE("track physics: a trim coil changes only the turns that reached its ra
   const double ra = 3.0, rb = 3.2;
   TrackModel base = iso_model();
   for (int i = 0; i < 4; ++i) base.gaps.push_back(iso_gap("g" + std::to_string(i), 45 + 90 * i, 1.0, 0));
-  base.probes.push_back(probe("P0", 0));
+  base.probes.push_back(test::probe("P0", 0));
   TrackModel with = base;
   with.coils.emplace_back(bump_coil(ra, rb, 5e-4), 8);
   TrackSettings st;
@@ -499,7 +486,7 @@ TEST_CASE("track physics: a trim coil moves the static orbit by -r db / (b gamma
   // averaged over 100 turns is the new orbit to a few % of dr. Below the coil nothing changes.
   const double ra = 3.0, rb = 3.2, bmax = 5e-4, r_peak = 3.1;
   TrackModel base = iso_model();
-  base.probes.push_back(probe("P0", 0));
+  base.probes.push_back(test::probe("P0", 0));
   TrackModel with = base;
   with.coils.emplace_back(bump_coil(ra, rb, bmax), 8);
   const double e_peak = (1 / std::sqrt(1 - std::pow(omega_rev() * r_peak / kC, 2)) - 1) * kMass;
@@ -538,7 +525,7 @@ TEST_CASE("track physics: the third-harmonic flat-top cavity flattens the energy
   const double V = 0.1, vft = 4 * V / 9, d = 10 * kDeg;
   TrackModel main_only = iso_model();
   for (int i = 0; i < 4; ++i) main_only.gaps.push_back(iso_gap("g" + std::to_string(i), 45 + 90 * i, V, 0));
-  main_only.probes.push_back(probe("P0", 0));
+  main_only.probes.push_back(test::probe("P0", 0));
   TrackModel flat = main_only;
   flat.gaps.push_back(iso_gap("ft", 180, vft, 0, 3, 180));
   auto gain = [&](const TrackModel& m, double offset) {
@@ -588,8 +575,8 @@ TEST_CASE("track physics: probe crossings are interpolated between time steps", 
   // interpolated on the step, RK4 at 2880 and at 23040 steps per turn must agree to 0.1 % of it.
   TrackModel m = iso_model();
   for (int i = 0; i < 4; ++i) m.gaps.push_back(iso_gap("g" + std::to_string(i), 45 + 90 * i, 1.0, 250));
-  m.probes.push_back(probe("P0", 90));
-  m.probes.push_back(probe("P1", 90 + 360.0 / 2880));
+  m.probes.push_back(test::probe("P0", 90));
+  m.probes.push_back(test::probe("P1", 90 + 360.0 / 2880));
   std::vector<TurnRecord> coarse, fine;
   TrackSettings st;
   st.integrator = "rk4";
@@ -626,7 +613,7 @@ TEST_CASE("track physics: N turns give N crossings of a probe at the injection a
   // start, on the line, is not a crossing; the end is). The other tests of this file stop at
   // N + 0.01 turns to stay clear of this.
   TrackModel m = iso_model();
-  m.probes.push_back(probe("P0", 0));
+  m.probes.push_back(test::probe("P0", 0));
   for (const char* integ : kIntegrators) {
     INFO(integ);
     for (int n : {1, 7, 40}) {
