@@ -216,10 +216,12 @@ bool TrimCoilField::in_azimuth(double th) const {
 
 void TrimCoilField::add(double r_m, double th, double main_b, double main_db_dr, double main_db_dth,
                         double threshold_T, double& b, double& db_dr, double& db_dth) const {
-  if (coil_.bmax_T == 0 || !in_azimuth(th)) return;
+  if (coil_.bmax_T == 0) return;
+  // The radial shape first: outside its support (most coils at any radius) it is a table
+  // lookup that ends the work, cheaper than the azimuth and sector test.
   double s, ds;
   shape(r_m, s, ds);
-  if (s == 0 && ds == 0) return;
+  if ((s == 0 && ds == 0) || !in_azimuth(th)) return;
   // Below the threshold the coil fades linearly with the main field (OPAL's smooth transition).
   double w = 1, dw_dr = 0, dw_dth = 0;
   const double amain = std::fabs(main_b);
