@@ -58,8 +58,7 @@ void add_orbit_options(CLI::App& app, OrbitOptions& o) {
       ->check(CLI::IsMember({"psi-ring", "turnfit"}))
       ->capture_default_str();
   app.add_option("--sector-field", o.sector_field,
-                 "Analytic separated-sector field (turnfit-sector-field/1 JSON, '-' for stdin) instead of a map")
-      ->check(CLI::ExistingFile | CLI::IsMember({"-"}));
+                 "Analytic separated-sector field (turnfit-sector-field/1 JSON, '-' for stdin) instead of a map");
   app.add_flag("--isochronize", o.isochronize,
                "Adjust the --sector-field's hill field until f_rev = f_rf / h at every energy (settings from\n"
                "the spec's \"isochronize\" block; --energies overrides its energies); then write the table");
@@ -183,12 +182,14 @@ void read_isochronize_block(const SectorFieldSpec& spec, const OrbitOptions& o, 
 }  // namespace
 
 OrbitJob prepare_orbit(const OrbitOptions& o) {
-  if (o.machine.empty() && o.field_map.empty() && o.sector_field.empty()) throw usage_error("give a machine file, --field-map FILE or --sector-field FILE");
+  if (o.machine.empty() && o.field_map.empty() && o.sector_field.empty())
+    throw usage_error("give a machine file, --field-map FILE or --sector-field FILE");
   if (!o.sector_field.empty() && (!o.machine.empty() || !o.field_map.empty()))
     throw usage_error("--sector-field is a field of its own: it goes without a machine file or --field-map");
   if ((o.isochronize || !o.write_spec.empty()) && o.sector_field.empty())
     throw usage_error(std::string(o.isochronize ? "--isochronize" : "--write-spec") + " needs --sector-field");
-  if (!o.write_spec.empty() && o.write_spec == o.write_map) throw usage_error("--write-spec and --write-map name the same file");
+  if (!o.write_spec.empty() && o.write_spec == o.write_map)
+    throw usage_error("--write-spec and --write-map name the same file");
   if ((!o.sets.empty() || !o.dvars.empty()) && o.machine.empty())
     throw usage_error("--set and --dvars need a machine file");
   if (o.machine == "-" && (o.field_map == "-" || o.dvars == "-")) throw usage_error("only one input can be stdin");
