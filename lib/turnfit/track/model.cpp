@@ -1,6 +1,8 @@
 // Assembling the tracking model from a machine description, and the machine's effects on it.
 #include "turnfit/track/model.hpp"
 
+#include <Eigen/Dense>
+
 #include <algorithm>
 #include <cmath>
 #include <utility>
@@ -53,30 +55,96 @@ double FieldEffects::sector_factor(double th, double& dfactor) const {
   return 1 + lo + (hi - lo) * S;
 }
 
+double TrackModel::sector_centre(double r_m, double& dc_dr) const {
+  const double x = (r_m - sector_r_mid_m) / sector_r_half_m;
+  double c = 0, d = 0;
+  for (size_t k = sector_centre_coef.size(); k-- > 0;) {
+    d = d * x + c;
+    c = c * x + sector_centre_coef[k];
+  }
+  dc_dr = d / sector_r_half_m;
+  return c;
+}
+
+void fit_sector_centre(TrackModel& t) {
+  t.sector_centre_coef.fill(0);
+  const PolarGrid& g = t.map.grid();
+  const int n = g.symmetry;
+  const double period = 2 * kPi / n;
+  t.sector_r_mid_m = 0.5 * (g.r_min_m() + g.r_max_m());
+  t.sector_r_half_m = std::max(0.5 * (g.r_max_m() - g.r_min_m()), 1e-9);
+  std::vector<double> x, phase, weight;
+  double amax = 0, prev = 0, total = 0;
+  for (int i = 0; i < g.nr; ++i) {
+    double c = 0, s = 0;
+    for (int j = 0; j < g.ntheta; ++j) {
+      // One sector holds exactly one period of the N-th harmonic.
+      const double a = n * (g.theta_min_rad() + j * g.dtheta_rad());
+      c += t.map.value(i, j) * std::cos(a);
+      s += t.map.value(i, j) * std::sin(a);
+      total += std::fabs(t.map.value(i, j));
+    }
+    const double amp = std::hypot(c, s);
+    double ph = std::atan2(s, c) / n;  // the hill centre, in (-period/2, period/2]
+    if (!phase.empty()) ph -= period * std::round((ph - prev) / period);  // unwrap across radii
+    prev = ph;
+    x.push_back((g.r_min_m() + i * g.dr_m() - t.sector_r_mid_m) / t.sector_r_half_m);
+    phase.push_back(ph);
+    weight.push_back(amp);
+    amax = std::max(amax, amp);
+  }
+  // No sector structure (a harmonic at rounding level of the field): no centre line.
+  if (!(amax > 1e-9 * total / g.nr)) return;
+  const int deg = std::min<int>(4, static_cast<int>(x.size()) - 1);
+  Eigen::MatrixXd A = Eigen::MatrixXd::Zero(deg + 1, deg + 1);
+  Eigen::VectorXd b = Eigen::VectorXd::Zero(deg + 1);
+  for (size_t i = 0; i < x.size(); ++i) {
+    const double w = weight[i] / amax;
+    if (w < 1e-6) continue;  // radii without sector structure say nothing about it
+    double pk[5];
+    pk[0] = 1;
+    for (int k = 1; k <= deg; ++k) pk[k] = pk[k - 1] * x[i];
+    for (int k = 0; k <= deg; ++k) {
+      b[k] += w * pk[k] * phase[i];
+      for (int l = 0; l <= deg; ++l) A(k, l) += w * pk[k] * pk[l];
+    }
+  }
+  const Eigen::VectorXd coef = A.ldlt().solve(b);
+  for (int k = 0; k <= deg; ++k) t.sector_centre_coef[static_cast<size_t>(k)] = coef[k];
+}
+
 bool TrackModel::field(double r_m, double th, FieldSample& out) const {
   // One branch per sample keeps the spline path free of indirect calls.
   if (!(opal_map ? opal_map->sample(r_m, th, out) : map.sample(r_m, th, out))) return false;
   if (effects.active) return field_with_effects(r_m, th, out);
   if (coils.empty()) return true;
   const FieldSample main = out;
+  double dc = 0;
+  const double centre = sector_windows ? sector_centre(r_m, dc) : 0.0;
   for (const auto& c : coils)
-    c.add(r_m, th, main.bz_T, main.dbz_dr_T_m, main.dbz_dth_T, threshold_T, out.bz_T, out.dbz_dr_T_m, out.dbz_dth_T);
+    c.add(r_m, th, main.bz_T, main.dbz_dr_T_m, main.dbz_dth_T, threshold_T, out.bz_T, out.dbz_dr_T_m, out.dbz_dth_T,
+          centre);
   return true;
 }
 
 bool TrackModel::field_with_effects(double r_m, double th, FieldSample& out) const {
   // A stronger sector magnet scales the map's field; the trim coils see the scaled field
   // (their threshold is on the main field), the harmonic error field comes on top of both.
+  // The sector windows follow the magnets' centre line theta_c(r): the factor is a function of
+  // theta - theta_c(r), so it also has an r derivative, -df theta_c'.
+  double dc = 0;
+  const double centre = sector_windows ? sector_centre(r_m, dc) : 0.0;
   if (!effects.sector_relative.empty()) {
     double df;
-    const double f = effects.sector_factor(th, df);
+    const double f = effects.sector_factor(th - centre, df);
+    out.dbz_dr_T_m = out.dbz_dr_T_m * f - out.bz_T * df * dc;
     out.dbz_dth_T = out.dbz_dth_T * f + out.bz_T * df;
-    out.dbz_dr_T_m *= f;
     out.bz_T *= f;
   }
   const FieldSample main = out;
   for (const auto& c : coils)
-    c.add(r_m, th, main.bz_T, main.dbz_dr_T_m, main.dbz_dth_T, threshold_T, out.bz_T, out.dbz_dr_T_m, out.dbz_dth_T);
+    c.add(r_m, th, main.bz_T, main.dbz_dr_T_m, main.dbz_dth_T, threshold_T, out.bz_T, out.dbz_dr_T_m, out.dbz_dth_T,
+          centre);
   for (const auto& h : effects.harmonics) {
     const double dr = r_m - h.r0_m;
     const double g = h.inv_width2 == 0 ? 1.0 : std::exp(-0.5 * dr * dr * h.inv_width2);
@@ -208,6 +276,7 @@ TrackModel make_track_model(const Machine& m, const ModelOptions& opt) {
     if (!opt.opal_map) t.coils.back().tabulate(t.map.grid().r_min_m(), t.map.grid().r_max_m());
   }
   t.threshold_T = m.field.trimcoil_threshold_T;
+  fit_sector_centre(t);
   t.gaps = make_gaps(m);
   for (const auto& p : m.probes) {
     ProbeLine l;
@@ -227,6 +296,8 @@ TrackModel make_track_model(const Machine& m, const ModelOptions& opt) {
   t.rf_MHz = m.rf.frequency_MHz;
   t.harmonic = m.rf.harmonic;
   if (!m.effect_set.empty()) apply_effects(t, m.effect_set, m.path.empty() ? "<machine>" : m.path, opt);
+  t.sector_windows = !t.effects.sector_relative.empty();
+  for (const auto& c : t.coils) t.sector_windows = t.sector_windows || !c.coil().sectors.empty();
   return t;
 }
 

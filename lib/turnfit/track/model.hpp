@@ -2,6 +2,7 @@
 #pragma once
 
 #include <cmath>
+#include <array>
 #include <optional>
 #include <string>
 #include <vector>
@@ -77,6 +78,15 @@ struct TrackModel {
   double rf_MHz = 0;                 ///< main RF frequency (phase reference of the turn records)
   int harmonic = 1;
   FieldEffects effects;              ///< field effects (apply_effects)
+  /// Azimuth of sector 1's centre line against radius (a spiral turns it), fitted to the phase
+  /// of the map's N-th azimuthal harmonic: theta_c = sum_k c_k x^k, x = (r - r_mid) / r_half.
+  /// Sector windows (trim coil sector lists, sector-strength) follow it. Zero for a map
+  /// without sectors; `sector_windows` false when nothing needs it (no sample cost).
+  std::array<double, 5> sector_centre_coef{};
+  double sector_r_mid_m = 0, sector_r_half_m = 1;
+  bool sector_windows = false;
+  /// theta_c(r) [rad] and its slope [rad/m].
+  double sector_centre(double r_m, double& dc_dr) const;
 
   /// Total bending field b (> 0 bends a positive particle moving with increasing azimuth;
   /// physical Bz = -b) and its derivatives; false outside the field map.
@@ -85,6 +95,11 @@ struct TrackModel {
  private:
   bool field_with_effects(double r_m, double theta_rad, FieldSample& out) const;
 };
+
+/// Fits TrackModel::sector_centre_coef to a map: per radius the phase of the N-th azimuthal
+/// harmonic (the hill centre), unwrapped across radii, then a degree-4 polynomial weighted by
+/// the harmonic's amplitude (smooth through measurement noise). All zero without sectors.
+void fit_sector_centre(TrackModel& t);
 
 /// How the model is built.
 struct ModelOptions {

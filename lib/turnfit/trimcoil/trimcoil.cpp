@@ -197,7 +197,7 @@ void TrimCoilField::shape_exact(double r_m, double& s, double& ds) const {
   }
 }
 
-bool TrimCoilField::in_azimuth(double th) const {
+bool TrimCoilField::in_azimuth(double th, double sector_offset) const {
   if (everywhere_) return true;
   const double two_pi = 2 * kPi;
   auto wrap = [&](double a) { return a - two_pi * std::floor(a / two_pi); };
@@ -208,20 +208,22 @@ bool TrimCoilField::in_azimuth(double th) const {
     if (!inside && coil_.phimax_deg - coil_.phimin_deg < 360) return false;
   }
   if (coil_.sectors.empty()) return true;
-  // Sector k is centred on azimuth (k - 1) 360/N deg (theta = 0 is the centre of sector 1).
+  // Sector k is centred on azimuth (k - 1) 360/N deg from sector 1's centre line (theta = 0
+  // without a spiral).
   const double width = two_pi / symmetry_;
-  const int k = static_cast<int>(std::floor(wrap(th + 0.5 * width) / width)) % symmetry_ + 1;
+  const int k = static_cast<int>(std::floor(wrap(th - sector_offset + 0.5 * width) / width)) % symmetry_ + 1;
   return std::find(coil_.sectors.begin(), coil_.sectors.end(), k) != coil_.sectors.end();
 }
 
 void TrimCoilField::add(double r_m, double th, double main_b, double main_db_dr, double main_db_dth,
-                        double threshold_T, double& b, double& db_dr, double& db_dth) const {
+                        double threshold_T, double& b, double& db_dr, double& db_dth,
+                        double sector_offset) const {
   if (coil_.bmax_T == 0) return;
   // The radial shape first: outside its support (most coils at any radius) it is a table
   // lookup that ends the work, cheaper than the azimuth and sector test.
   double s, ds;
   shape(r_m, s, ds);
-  if ((s == 0 && ds == 0) || !in_azimuth(th)) return;
+  if ((s == 0 && ds == 0) || !in_azimuth(th, sector_offset)) return;
   // Below the threshold the coil fades linearly with the main field (OPAL's smooth transition).
   double w = 1, dw_dr = 0, dw_dth = 0;
   const double amain = std::fabs(main_b);

@@ -22,8 +22,10 @@ class TrimCoilField {
 
   /// Adds the coil to b and its derivatives at (r, theta), given the main field there
   /// (for the threshold fall-off). Units: m, rad, T.
+  /// `sector_offset_rad`: azimuth of sector 1's centre line at this radius (a spiral turns it),
+  /// so a sector list follows the magnets; the PHIMIN/PHIMAX window stays in machine azimuth.
   void add(double r_m, double theta_rad, double main_b_T, double main_db_dr, double main_db_dth,
-           double threshold_T, double& b, double& db_dr, double& db_dth) const;
+           double threshold_T, double& b, double& db_dr, double& db_dth, double sector_offset_rad = 0) const;
 
   /// The radial shape s(r) and ds/dr [1/m] (b = bmax * s before windows); 0 outside.
   /// From the lookup table when one was built, else from the formula.
@@ -46,7 +48,7 @@ class TrimCoilField {
   const TrimCoil& coil() const { return coil_; }
 
  private:
-  bool in_azimuth(double theta_rad) const;
+  bool in_azimuth(double theta_rad, double sector_offset_rad) const;
   TrimCoil coil_;
   int symmetry_;
   int kind_;  // 0 bfield, 1 phase, 2 mirrored, 3 table

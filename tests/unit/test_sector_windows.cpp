@@ -1,0 +1,87 @@
+// Sector windows follow a spiral: the track model's fitted centre line of sector 1, and trim coil
+// sector lists and sector-strength windows that turn with it.
+#include <catch2/catch.hpp>
+
+#include <cmath>
+
+#include "turnfit/field/sector_field.hpp"
+#include "turnfit/track/model.hpp"
+
+using namespace turnfit;
+
+namespace {
+constexpr double kDeg = 3.14159265358979323846 / 180;
+
+SectorFieldSpec spiral_spec() {
+  SectorFieldSpec s;
+  s.sectors = 8;
+  s.width_deg = {{2000, 4500}, {21, 19.5}};
+  s.spiral_deg = {{1800, 2500, 3500, 4000, 4400, 4900}, {0, 3, 17, 24.5, 33, 39.5}};  // ring8's
+  s.spiral_r0_mm = 2000;
+  s.fringe_mm = 60;
+  s.hill_T = {{1800, 4900}, {1.3, 2.1}};
+  s.grid.r_min_mm = 1800;
+  s.grid.dr_mm = 20;
+  s.grid.nr = 156;
+  s.grid.ntheta = 135;
+  s.grid.symmetry = 8;
+  return s;
+}
+
+TrackModel model_of(const SectorFieldSpec& s) {
+  TrackModel t;
+  t.map = make_sector_field(s);
+  fit_sector_centre(t);
+  return t;
+}
+}  // namespace
+
+TEST_CASE("sector windows: the fitted centre line follows the spiral", "[track][sector]") {
+  const SectorFieldSpec s = spiral_spec();
+  const TrackModel t = model_of(s);
+  for (double r : {2000.0, 2500.0, 3000.0, 3500.0, 4000.0, 4400.0, 4700.0}) {
+    double dc;
+    const double c = t.sector_centre(r * 1e-3, dc) / kDeg;
+    INFO("r = " << r);
+    CHECK(c == Approx(sector_centre_deg(s, r)).margin(0.15));  // 10 deg of turn at 4.4 m
+  }
+  // Without a spiral the centre stays on theta = 0; without sectors there is none.
+  SectorFieldSpec straight = s;
+  straight.spiral_deg = {};
+  const TrackModel ts = model_of(straight);
+  double dc;
+  CHECK(ts.sector_centre(4.0, dc) == Approx(0).margin(1e-9));
+  TrackModel flat;
+  flat.map = make_field_map(s.grid, [](double, double) { return 1.0; }, "uniform");
+  fit_sector_centre(flat);
+  CHECK(flat.sector_centre(3.0, dc) == 0);
+}
+
+TEST_CASE("sector windows: a trim coil on sector 1 acts on magnet 1 where the spiral has turned it", "[track][sector]") {
+  TrackModel t = model_of(spiral_spec());
+  TrimCoil c;
+  c.name = "TC";
+  c.type = "psi-bfield";
+  c.rmin_mm = 1900;
+  c.rmax_mm = 4800;
+  c.bmax_T = 1e-3;
+  c.coefnum = {1.0};  // a flat shape: only the window decides
+  c.sectors = {1};
+  t.coils.emplace_back(c, 8);
+  t.sector_windows = true;
+  double dc;
+  const double r = 4.5, centre = t.sector_centre(r, dc);
+  REQUIRE(centre / kDeg > 9);  // the magnet has turned by about 10 deg here
+  auto coil_field = [&](double th_deg) {
+    FieldSample with, without;
+    REQUIRE(t.field(r, th_deg * kDeg, with));
+    REQUIRE(t.map.sample(r, th_deg * kDeg, without));
+    return with.bz_T - without.bz_T;
+  };
+  // 20 deg past magnet 1's centre is still magnet 1's window (a fixed window at 22.5 deg would
+  // have cut it there); the next magnet's centre is not.
+  CHECK(coil_field(centre / kDeg + 20) == Approx(1e-3).epsilon(1e-9));
+  CHECK(coil_field(centre / kDeg - 20) == Approx(1e-3).epsilon(1e-9));
+  CHECK(coil_field(centre / kDeg + 45) == 0);
+  CHECK(coil_field(centre / kDeg - 25) == 0);
+}
