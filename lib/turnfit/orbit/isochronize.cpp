@@ -138,8 +138,7 @@ IsochronizeResult isochronize(const SectorFieldSpec& start, const OrbitSettings&
       for (int j = 0; j < n; ++j) trial.hill_T.value[static_cast<size_t>(j)] *= std::exp(step[j]);
       Evaluation e;
       bool usable = true;
-      try {
-        validate_sector_spec(trial);
+      try {  // make_sector_field validates the trial (a width gone out of range is no step)
         e = evaluate(trial, s, E, threads);
         usable = e.failure.empty();
       } catch (const Error&) {

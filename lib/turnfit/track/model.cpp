@@ -276,7 +276,6 @@ TrackModel make_track_model(const Machine& m, const ModelOptions& opt) {
     if (!opt.opal_map) t.coils.back().tabulate(t.map.grid().r_min_m(), t.map.grid().r_max_m());
   }
   t.threshold_T = m.field.trimcoil_threshold_T;
-  fit_sector_centre(t);
   t.gaps = make_gaps(m);
   for (const auto& p : m.probes) {
     ProbeLine l;
@@ -298,6 +297,9 @@ TrackModel make_track_model(const Machine& m, const ModelOptions& opt) {
   if (!m.effect_set.empty()) apply_effects(t, m.effect_set, m.path.empty() ? "<machine>" : m.path, opt);
   t.sector_windows = !t.effects.sector_relative.empty();
   for (const auto& c : t.coils) t.sector_windows = t.sector_windows || !c.coil().sectors.empty();
+  // A harmonic analysis of the whole map: only for models whose windows use it (an optimizer
+  // builds a model per evaluation).
+  if (t.sector_windows) fit_sector_centre(t);
   return t;
 }
 

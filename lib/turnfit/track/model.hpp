@@ -81,7 +81,7 @@ struct TrackModel {
   /// Azimuth of sector 1's centre line against radius (a spiral turns it), fitted to the phase
   /// of the map's N-th azimuthal harmonic: theta_c = sum_k c_k x^k, x = (r - r_mid) / r_half.
   /// Sector windows (trim coil sector lists, sector-strength) follow it. Zero for a map
-  /// without sectors; `sector_windows` false when nothing needs it (no sample cost).
+  /// without sectors. make_track_model fits it only when `sector_windows` (something uses it).
   std::array<double, 5> sector_centre_coef{};
   double sector_r_mid_m = 0, sector_r_half_m = 1;
   bool sector_windows = false;
