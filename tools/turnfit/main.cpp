@@ -17,6 +17,7 @@ const char* const kTools[][2] = {
     {"synth", "synthetic probe profiles and trim coil phase scans from a truth machine"},
     {"peakfind", "the turns in a probe profile: positions, heights, widths, flags"},
     {"compare", "measured vs simulated turn radii: errors per probe, objectives, exit 0/1 like diff"},
+    {"tc-fit", "rational fits of trim coil phase-shift scans: normalized field profiles"},
 };
 
 void usage(std::ostream& os) {

@@ -213,6 +213,31 @@ double RationalFit::value_sigma(double r) const {
   return v > 0 ? std::sqrt(v) : 0;
 }
 
+Eigen::VectorXd RationalFit::slope_gradient(double r) const {
+  // D = dq/dx = (f' g - f g') / g^2; d/da_k and d/db_k by the quotient rule, then / half_width.
+  const double x = x_of(r);
+  double f = 0, df = 0, g = 0, dg = 0;
+  for (int k = n; k >= 0; --k) {
+    df = df * x + f;
+    f = f * x + a[static_cast<size_t>(k)];
+  }
+  for (int k = m; k >= 0; --k) {
+    dg = dg * x + g;
+    g = g * x + b[static_cast<size_t>(k)];
+  }
+  const double D = (df * g - f * dg) / (g * g);
+  Eigen::VectorXd grad(parameters());
+  for (int k = 0; k <= n; ++k) {
+    const double xk = std::pow(x, k), xk1 = k > 0 ? k * std::pow(x, k - 1) : 0.0;
+    grad(k) = (xk1 * g - xk * dg) / (g * g);
+  }
+  for (int k = 1; k <= m; ++k) {
+    const double xk = std::pow(x, k), xk1 = k * std::pow(x, k - 1);
+    grad(n + k) = (df * xk - f * xk1) / (g * g) - 2 * D * xk / g;
+  }
+  return grad / half_width;
+}
+
 std::vector<double> polynomial_in_r(const std::vector<double>& c_x, double centre, double half_width) {
   // p(x) with x = (r - c)/h = sum_k c_k h^-k (r - c)^k; (r - c)^k expanded by the binomial theorem.
   const size_t n = c_x.size();

@@ -43,6 +43,9 @@ struct RationalFit {
   double value(double r) const;
   /// Standard deviation of the fitted value at r from the parameter covariance (delta method).
   double value_sigma(double r) const;
+  /// Gradient of dq/dr (per unit of r) with respect to (a_0..a_n, b_1..b_m): with the
+  /// covariance it gives the uncertainty of the field shape, which follows dq/dr.
+  Eigen::VectorXd slope_gradient(double r) const;
 };
 
 /// Fits f/g of degrees n/m to the points with r_lo <= r <= r_hi. Deterministic starts (no luck):

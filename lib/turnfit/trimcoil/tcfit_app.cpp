@@ -1,0 +1,704 @@
+// turnfit-tc-fit: rational fits of trim coil phase-shift scans (paper Sec. II.C, Eq. 2-3) and the
+// normalized field profiles they imply, as machine-file entries, OPAL commands or tables.
+#include "turnfit/trimcoil/tcfit_app.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <cstdio>
+#include <filesystem>
+#include <limits>
+#include <map>
+#include <numeric>
+#include <optional>
+#include <sstream>
+
+#include "turnfit/io/csv.hpp"
+#include "turnfit/io/error.hpp"
+#include "turnfit/io/json.hpp"
+#include "turnfit/io/output.hpp"
+#include "turnfit/trimcoil/trimcoil.hpp"
+
+namespace turnfit {
+
+void add_tcfit_options(CLI::App& app, TcFitOptions& o) {
+  app.description(
+      "Fits each trim coil's phase-shift scan delta sin(phi)(r) by a rational function f/g (Ceres\n"
+      "Levenberg-Marquardt, denominator kept free of roots on the window) and writes the coil's\n"
+      "field profile B ~ -d/dr (f/g), normalized to a peak of +1, so that bmax_T is the coil's peak\n"
+      "field (paper Sec. II.C). Input: CSV r_mm,dsinphi per coil (coil from '# coil=' or the file\n"
+      "name) or one file with a coil column, as turnfit-synth writes them.");
+  app.add_option("inputs", o.inputs, "Phase-shift CSV files ('-' for stdin)")->required();
+  app.add_option("--degrees", o.degrees,
+                 "Numerator/denominator degrees N/M (the paper: 2/4, and 4/5 for TC1, TC16-18), or 'auto'")
+      ->capture_default_str();
+  app.add_option("--criterion", o.criterion, "auto: the information criterion that picks the degrees")
+      ->check(CLI::IsMember({"aicc", "bic"}))
+      ->capture_default_str();
+  app.add_option("--max-degrees", [&o](const std::vector<std::string>& v) {
+    int n = -1, m = -1;
+    char extra = 0;
+    if (v.size() != 1 || std::sscanf(v[0].c_str(), "%d/%d%c", &n, &m, &extra) != 2 || n < 0 || m < 0 || n > 12 || m > 12)
+      return false;
+    o.max_numerator = n;
+    o.max_denominator = m;
+    return true;
+  }, "auto: largest degrees tried, N/M (default 5/6)");
+  app.add_option("--rmin", o.rmin_mm, "Window start [mm] (default: the machine's coil rmin, else the data's first radius)")
+      ->check(CLI::Range(0.0, 1e6));
+  app.add_option("--rmax", o.rmax_mm, "Window end [mm] (default: the machine's coil rmax, else the data's last radius)")
+      ->check(CLI::Range(0.0, 1e6));
+  app.add_option("--type", o.type,
+                 "Machine-file description: psi-phase (f/g of the phase) or psi-bfield (the field's own rational)")
+      ->check(CLI::IsMember({"psi-phase", "psi-bfield"}))
+      ->capture_default_str();
+  app.add_option("--report", o.report, "Write the fit report (JSON) here ('-' for stdout)");
+  app.add_option("--machine", o.machine,
+                 "Replace the coils of this machine file (by name; bmax_T, sectors, window kept) and write the machine");
+  app.add_option("--grid-mm", o.grid_mm, "csv: spacing of the fine grid [mm]")->check(CLI::Range(1e-3, 1e4))->capture_default_str();
+  app.add_option("--max-iterations", o.max_iterations, "Levenberg-Marquardt iterations per start")
+      ->check(CLI::Range(1, 100000))
+      ->capture_default_str();
+  app.add_option("--turns", o.turns,
+                 "Turns table of the machine (turnfit-track's output): correct each scan by V_turn/beta, the factor "
+                 "between phase slope and field, before fitting");
+  app.add_option("--mass-MeV", o.mass_MeV, "Rest mass for beta with --turns (default: the machine's particle, else proton)")
+      ->check(CLI::Range(1e-3, 1e6));
+  cli::add_common_options(app, o.common, cli::kOutput | cli::kFormat, {"json", "opal", "csv"});
+}
+
+double SlopeWeight::at(double r) const {
+  if (r <= r_mm.front()) return w.front();
+  if (r >= r_mm.back()) return w.back();
+  const size_t i = static_cast<size_t>(std::upper_bound(r_mm.begin(), r_mm.end(), r) - r_mm.begin()) - 1;
+  const double t = (r - r_mm[i]) / (r_mm[i + 1] - r_mm[i]);
+  return w[i] + t * (w[i + 1] - w[i]);
+}
+
+SlopeWeight read_slope_weight(const std::string& path, double mass_MeV) {
+  const CsvTable t = CsvTable::read(path);
+  t.require_columns({"turn", "r_mm", "energy_MeV"});
+  const size_t ct = t.column("turn"), cr = t.column("r_mm"), ce = t.column("energy_MeV");
+  // The probe with most turns (its turns are consecutive crossings of one radial line).
+  std::map<std::string, std::vector<size_t>> rows;
+  const bool has_probe = t.has_column("probe");
+  for (size_t i = 0; i < t.rows(); ++i) rows[has_probe ? t.cell(i, t.column("probe")) : std::string()].push_back(i);
+  const std::vector<size_t>* best = nullptr;
+  for (const auto& kv : rows)
+    if (!best || kv.second.size() > best->size()) best = &kv.second;
+  struct Turn {
+    double n, r, e;
+    long line;
+  };
+  std::vector<Turn> turns;
+  for (size_t i : *best) turns.push_back({t.number(i, ct), t.number(i, cr), t.number(i, ce), t.line(i)});
+  std::sort(turns.begin(), turns.end(), [](const Turn& a, const Turn& b) { return a.n < b.n; });
+  if (turns.size() < 3) throw data_error(t.name(), 0, "--turns needs at least 3 turns of one probe");
+  SlopeWeight sw;
+  for (size_t k = 0; k + 1 < turns.size(); ++k) {
+    const Turn &a = turns[k], &b = turns[k + 1];
+    if (!(b.n > a.n) || !(b.e > a.e) || !(b.r > a.r))
+      throw data_error(t.name(), b.line, "turn number, radius and energy must increase from turn to turn");
+    const double e = 0.5 * (a.e + b.e), gamma = 1 + e / mass_MeV;
+    const double beta = std::sqrt(1 - 1 / (gamma * gamma));
+    sw.r_mm.push_back(0.5 * (a.r + b.r));
+    sw.w.push_back((b.e - a.e) / (b.n - a.n) / beta);
+  }
+  return sw;
+}
+
+namespace {
+
+constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
+
+/// "key=value" tokens of '#' comment lines.
+std::map<std::string, std::string> metadata(const std::vector<std::string>& comments) {
+  std::map<std::string, std::string> kv;
+  for (const std::string& line : comments) {
+    std::istringstream is(line.substr(1));
+    std::string tok;
+    while (is >> tok) {
+      const auto eq = tok.find('=');
+      if (eq != std::string::npos && eq > 0) kv.emplace(tok.substr(0, eq), tok.substr(eq + 1));
+    }
+  }
+  return kv;
+}
+
+bool valid_coil_name(const std::string& s) {
+  return !s.empty() && s.find_first_of(",\"\r\n") == std::string::npos;
+}
+
+/// Sorts a coil's points by radius and refuses duplicate radii (naming both lines).
+void sort_points(PhaseData& d) {
+  std::vector<size_t> idx(d.r_mm.size());
+  std::iota(idx.begin(), idx.end(), size_t{0});
+  std::stable_sort(idx.begin(), idx.end(), [&](size_t i, size_t j) { return d.r_mm[i] < d.r_mm[j]; });
+  PhaseData s = d;
+  for (size_t k = 0; k < idx.size(); ++k) {
+    s.r_mm[k] = d.r_mm[idx[k]];
+    s.dsinphi[k] = d.dsinphi[idx[k]];
+    s.lines[k] = d.lines[idx[k]];
+    if (k > 0 && s.r_mm[k] == s.r_mm[k - 1] && s.error.empty())
+      s.error = d.source + ":" + std::to_string(std::max(s.lines[k], s.lines[k - 1])) + ": duplicate radius r_mm=" +
+                cli::fmt(s.r_mm[k]) + " (also on line " + std::to_string(std::min(s.lines[k], s.lines[k - 1])) + ")";
+  }
+  d = std::move(s);
+}
+
+std::string degrees_string(int n, int m) { return std::to_string(n) + "/" + std::to_string(m); }
+
+/// The fixed degrees of --degrees N/M (usage error if malformed).
+bool parse_degrees(const std::string& s, int& n, int& m) {
+  if (s == "auto") return false;
+  char extra = 0;
+  if (std::sscanf(s.c_str(), "%d/%d%c", &n, &m, &extra) != 2 || n < 0 || m < 0 || n > 12 || m > 12)
+    throw usage_error("--degrees '" + s + "': give N/M (0 <= N, M <= 12) or auto");
+  return true;
+}
+
+double criterion_of(const RationalFit& f, const std::string& c) { return c == "bic" ? f.bic : f.aicc; }
+
+// Polynomial helpers on coefficient vectors (lowest degree first).
+std::vector<double> poly_mul(const std::vector<double>& p, const std::vector<double>& q) {
+  std::vector<double> r(p.size() + q.size() - 1, 0.0);
+  for (size_t i = 0; i < p.size(); ++i)
+    for (size_t j = 0; j < q.size(); ++j) r[i + j] += p[i] * q[j];
+  return r;
+}
+std::vector<double> poly_der(const std::vector<double>& p) {
+  if (p.size() < 2) return {0.0};
+  std::vector<double> d(p.size() - 1);
+  for (size_t k = 1; k < p.size(); ++k) d[k - 1] = static_cast<double>(k) * p[k];
+  return d;
+}
+std::vector<double> poly_sub(std::vector<double> p, const std::vector<double>& q) {
+  if (q.size() > p.size()) p.resize(q.size(), 0.0);
+  for (size_t k = 0; k < q.size(); ++k) p[k] -= q[k];
+  return p;
+}
+
+/// u(r) = -d(f/g)/dr [1/m]: the unnormalized field shape (paper Eq. 3, B ~ -d sin(phi)/dr).
+double raw_shape(const RationalFit& f, double r_mm) {
+  double q, dq, d2q;
+  f.eval(r_mm, q, dq, d2q);
+  return -dq * 1e3;
+}
+
+/// Where |u| peaks on [lo, hi]: a dense scan, then golden-section refinement.
+double peak_of(const RationalFit& f, double lo, double hi) {
+  const int n = 4000;
+  double best_r = lo, best = -1;
+  for (int i = 0; i <= n; ++i) {
+    const double r = lo + (hi - lo) * i / n, v = std::fabs(raw_shape(f, r));
+    if (v > best) {
+      best = v;
+      best_r = r;
+    }
+  }
+  const double h = (hi - lo) / n;
+  double a = std::max(lo, best_r - h), b = std::min(hi, best_r + h);
+  const double gr = 0.5 * (std::sqrt(5.0) - 1);
+  for (int it = 0; it < 60; ++it) {
+    const double c = b - gr * (b - a), d = a + gr * (b - a);
+    if (std::fabs(raw_shape(f, c)) > std::fabs(raw_shape(f, d))) b = d;
+    else a = c;
+  }
+  const double r = 0.5 * (a + b);
+  return std::fabs(raw_shape(f, r)) >= best ? r : best_r;
+}
+
+/// The machine-file entry of a fit: coefficients in r [m], scaled so the field shape peaks at +1.
+void build_coil(CoilFit& c, const std::string& type) {
+  const RationalFit& f = c.fit;
+  c.peak_r_mm = peak_of(f, c.r_lo_mm, c.r_hi_mm);
+  c.slope_per_m = raw_shape(f, c.peak_r_mm);
+  if (!(std::fabs(c.slope_per_m) > 0))
+    throw Error(ExitCode::data, "the fitted phase shift is flat on the window: it implies no field");
+  const double cm = f.centre * 1e-3, hm = f.half_width * 1e-3, inv = 1 / c.slope_per_m;
+  TrimCoil& t = c.coil;
+  t.name = c.data.name;
+  t.type = type;
+  t.rmin_mm = c.r_lo_mm;
+  t.rmax_mm = c.r_hi_mm;
+  t.bmax_T = 0;
+  if (type == "psi-phase") {
+    // OPAL's PSI-PHASE: B = -bmax d(f/g)/dr, so f/g itself is the phase shift over the divisor.
+    std::vector<double> num = f.a;
+    for (double& v : num) v *= inv;
+    t.coefnum = polynomial_in_r(num, cm, hm);
+    t.coefdenom = polynomial_in_r(f.b, cm, hm);
+  } else {
+    // d(f/g)/dr = (f' g - f g') / (h g^2) in the scaled variable (quotient rule, paper Eq. 3).
+    std::vector<double> p = poly_sub(poly_mul(poly_der(f.a), f.b), poly_mul(f.a, poly_der(f.b)));
+    for (double& v : p) v *= -inv / hm;
+    t.coefnum = polynomial_in_r(p, cm, hm);
+    t.coefdenom = polynomial_in_r(poly_mul(f.b, f.b), cm, hm);
+  }
+  // What the coefficients in r (doubles, as a machine file and OPAL hold them) lose against the
+  // scaled fit: the cancellation of large terms at r ~ 4 m.
+  t.bmax_T = 1;
+  TrimCoilField field(t, 1);
+  t.bmax_T = 0;
+  c.representation_error = 0;
+  for (int i = 0; i <= 2000; ++i) {
+    const double r = c.r_lo_mm + (c.r_hi_mm - c.r_lo_mm) * i / 2000;
+    double s, ds, se, dse;
+    field.shape_exact(r * 1e-3, s, ds);
+    fitted_shape(c, r, se, dse);
+    c.representation_error = std::max(c.representation_error, std::fabs(s - se));
+  }
+}
+
+/// The fit window of a coil: --rmin/--rmax, else the machine coil's support, each clipped to the
+/// data (a rational is not extrapolated).
+void choose_window(CoilFit& c, const TcFitOptions& o, const TrimCoil* mc) {
+  const double dlo = c.data.r_mm.front(), dhi = c.data.r_mm.back();
+  double lo = o.rmin_mm > 0 ? o.rmin_mm : mc ? mc->rmin_mm : dlo;
+  double hi = o.rmax_mm > 0 ? o.rmax_mm : mc ? mc->rmax_mm : dhi;
+  lo = std::max(lo, dlo);
+  hi = std::min(hi, dhi);
+  if (!(hi > lo))
+    throw Error(ExitCode::data, "the window [" + cli::fmt(o.rmin_mm > 0 ? o.rmin_mm : mc ? mc->rmin_mm : dlo) + ", " +
+                                    cli::fmt(o.rmax_mm > 0 ? o.rmax_mm : mc ? mc->rmax_mm : dhi) +
+                                    "] mm holds no data (data " + cli::fmt(dlo) + " to " + cli::fmt(dhi) + " mm)");
+  c.r_lo_mm = lo;
+  c.r_hi_mm = hi;
+}
+
+}  // namespace
+
+std::vector<PhaseData> read_phase_data(const std::string& path) {
+  const CsvTable t = CsvTable::read(path);
+  t.require_columns({"r_mm", "dsinphi"});
+  const auto meta = metadata(t.comments());
+  const size_t cr = t.column("r_mm"), cy = t.column("dsinphi");
+  const bool has_coil = t.has_column("coil");
+  double excitation = 0;
+  if (auto it = meta.find("excitation_T"); it != meta.end()) {
+    char* end = nullptr;
+    excitation = std::strtod(it->second.c_str(), &end);
+    if (end == it->second.c_str() || *end || !std::isfinite(excitation)) excitation = 0;
+  }
+  std::string file_coil;
+  if (!has_coil) {
+    if (auto it = meta.find("coil"); it != meta.end()) file_coil = it->second;
+    else if (path != "-" && !path.empty()) file_coil = std::filesystem::path(path).stem().string();
+    if (file_coil.empty())
+      throw data_error(t.name(), 0, "no coil name: add a 'coil' column or a '# coil=NAME' line");
+    if (!valid_coil_name(file_coil)) throw data_error(t.name(), 0, "coil name '" + file_coil + "' holds a comma or quote");
+  }
+  std::vector<PhaseData> out;
+  std::map<std::string, size_t> index;
+  for (size_t i = 0; i < t.rows(); ++i) {
+    const std::string name = has_coil ? t.cell(i, t.column("coil")) : file_coil;
+    if (!valid_coil_name(name)) throw data_error(t.name(), t.line(i), "coil name '" + name + "' is empty or holds a quote");
+    auto [it, fresh] = index.emplace(name, out.size());
+    if (fresh) {
+      PhaseData d;
+      d.name = name;
+      d.source = t.name();
+      d.excitation_T = excitation;
+      out.push_back(std::move(d));
+    }
+    PhaseData& d = out[it->second];
+    if (!d.error.empty()) continue;
+    try {
+      const double r = t.number(i, cr), y = t.number(i, cy);
+      d.r_mm.push_back(r);
+      d.dsinphi.push_back(y);
+      d.lines.push_back(t.line(i));
+    } catch (const Error& e) {
+      d.error = e.what();
+    }
+  }
+  if (out.empty()) throw data_error(t.name(), 0, "no data rows");
+  for (PhaseData& d : out)
+    if (d.error.empty()) sort_points(d);
+  return out;
+}
+
+double fitted_shape_sigma(const CoilFit& c, double r_mm) {
+  if (c.fit.covariance.size() == 0 || c.slope_per_m == 0) return kNaN;
+  double s, ds;
+  fitted_shape(c, r_mm, s, ds);
+  // s = D(r) / D(r_peak): its gradient (grad D(r) - s grad D(r_peak)) / D(r_peak).
+  const double dpeak = -c.slope_per_m * 1e-3;  // dq/dr at the peak, per mm
+  const Eigen::VectorXd g = (c.fit.slope_gradient(r_mm) - s * c.fit.slope_gradient(c.peak_r_mm)) / dpeak;
+  const double v = g.dot(c.fit.covariance * g);
+  return v > 0 ? std::sqrt(v) : 0;
+}
+
+void fitted_shape(const CoilFit& c, double r_mm, double& s, double& ds) {
+  s = ds = 0;
+  if (r_mm < c.r_lo_mm || r_mm > c.r_hi_mm || c.slope_per_m == 0) return;
+  double q, dq, d2q;
+  c.fit.eval(r_mm, q, dq, d2q);
+  s = -dq * 1e3 / c.slope_per_m;
+  ds = -d2q * 1e6 / c.slope_per_m;
+}
+
+CoilFit fit_coil(const PhaseData& input, const TcFitOptions& o, const TrimCoil* mc, const SlopeWeight* weight) {
+  CoilFit c;
+  c.data = input;
+  if (!input.error.empty()) {
+    c.error = input.error;
+    return c;
+  }
+  try {
+    if (input.r_mm.empty()) throw Error(ExitCode::data, "no data points");
+    choose_window(c, o, mc);
+    PhaseData data = input;
+    if (weight) {
+      // Summation by parts: each step of the scan scaled by the weight at its middle, so the
+      // slope of the result follows the field (see SlopeWeight).
+      const double wref = weight->at(0.5 * (c.r_lo_mm + c.r_hi_mm));
+      for (size_t i = 1; i < data.r_mm.size(); ++i)
+        data.dsinphi[i] = data.dsinphi[i - 1] + weight->at(0.5 * (input.r_mm[i - 1] + input.r_mm[i])) / wref *
+                                                    (input.dsinphi[i] - input.dsinphi[i - 1]);
+      c.weighted = true;
+      c.weight_lo = weight->at(c.r_lo_mm) / wref;
+      c.weight_hi = weight->at(c.r_hi_mm) / wref;
+      c.data = data;
+    }
+    int n = 0, m = 0;
+    if (parse_degrees(o.degrees, n, m)) {
+      c.fit = fit_rational(data.r_mm, data.dsinphi, c.r_lo_mm, c.r_hi_mm, n, m, {}, o.max_iterations);
+      c.selected_by = "--degrees";
+    } else {
+      // Every (n, m) up to the limits that leaves the criterion defined (N - p - 1 > 0); each
+      // fit also starts from the one with a numerator degree less, so adding a parameter never
+      // fits worse. The criterion picks.
+      size_t npts = 0;
+      for (double r : data.r_mm) npts += r >= c.r_lo_mm && r <= c.r_hi_mm;
+      std::map<std::pair<int, int>, size_t> done;
+      for (int mm = 0; mm <= o.max_denominator; ++mm) {
+        for (int nn = 0; nn <= o.max_numerator; ++nn) {
+          if (static_cast<size_t>(nn + 1 + mm) + 1 >= npts) continue;
+          std::vector<RationalFit> starts;
+          if (auto it = done.find({nn - 1, mm}); it != done.end()) starts.push_back(c.candidates[it->second]);
+          try {
+            RationalFit f = fit_rational(data.r_mm, data.dsinphi, c.r_lo_mm, c.r_hi_mm, nn, mm, starts, o.max_iterations);
+            done[{nn, mm}] = c.candidates.size();
+            c.candidates.push_back(std::move(f));
+          } catch (const Error& e) {
+            c.candidate_errors.push_back(degrees_string(nn, mm) + ": " + e.what());
+          }
+        }
+      }
+      if (c.candidates.empty())
+        throw Error(ExitCode::data, std::to_string(npts) + " points in the window: too few for any rational fit" +
+                                        (c.candidate_errors.empty() ? "" : " (" + c.candidate_errors.front() + ")"));
+      size_t best = 0;
+      for (size_t k = 1; k < c.candidates.size(); ++k)
+        if (criterion_of(c.candidates[k], o.criterion) < criterion_of(c.candidates[best], o.criterion)) best = k;
+      c.fit = c.candidates[best];
+      c.selected_by = o.criterion;
+    }
+    build_coil(c, o.type);
+  } catch (const Error& e) {
+    c.error = e.what();
+  }
+  return c;
+}
+
+namespace {
+
+std::string num17(double v) {
+  char buf[40];
+  std::snprintf(buf, sizeof buf, "%.17g", v);
+  return buf;
+}
+
+nlohmann::json coil_json(const TrimCoil& t) {
+  return {{"name", t.name},       {"type", t.type},       {"rmin_mm", t.rmin_mm},     {"rmax_mm", t.rmax_mm},
+          {"bmax_T", t.bmax_T},   {"coefnum", t.coefnum}, {"coefdenom", t.coefdenom}};
+}
+
+/// A JSON number or null (JSON has no NaN or infinity).
+nlohmann::json finite_or_null(double v) { return std::isfinite(v) ? nlohmann::json(v) : nlohmann::json(nullptr); }
+
+/// Relative paths of a machine document re-expressed for a document written into `to_dir`
+/// (absolute when writing to stdout).
+void rebase_paths(nlohmann::json& doc, const std::string& from_dir, const std::string& out_path) {
+  namespace fs = std::filesystem;
+  const bool to_stdout = out_path.empty() || out_path == "-";
+  const fs::path to_dir = to_stdout ? fs::path() : fs::absolute(fs::path(out_path)).parent_path();
+  auto fix = [&](nlohmann::json& v) {
+    if (!v.is_string()) return;
+    const fs::path p(v.get<std::string>());
+    if (p.empty() || p.is_absolute()) return;
+    const fs::path abs = fs::absolute(fs::path(from_dir.empty() ? "." : from_dir) / p).lexically_normal();
+    v = to_stdout ? abs.string() : abs.lexically_relative(to_dir).string();
+  };
+  if (doc.contains("field") && doc["field"].is_object() && doc["field"].contains("map")) fix(doc["field"]["map"]);
+  for (const char* arr : {"cavities", "trimcoils"})
+    if (doc.contains(arr) && doc[arr].is_array())
+      for (auto& e : doc[arr])
+        for (const char* key : {"profile", "table"})
+          if (e.is_object() && e.contains(key)) fix(e[key]);
+  if (doc.contains("bunch") && doc["bunch"].is_object() && doc["bunch"].contains("file")) fix(doc["bunch"]["file"]);
+}
+
+}  // namespace
+
+void write_tcfit_output(std::ostream& os, const std::vector<CoilFit>& fits, const TcFitOptions& o) {
+  const bool prov = !o.common.no_provenance;
+  if (o.common.format == "opal") {
+    if (prov) {
+      std::string pc = cli::provenance_comment();  // '#' lines -> OPAL '//' comments
+      std::istringstream is(pc);
+      for (std::string line; std::getline(is, line);) os << "//" << line.substr(line.empty() ? 0 : 1) << "\n";
+    }
+    os << "// Trim coils fitted to phase-shift data by turnfit-tc-fit. OPAL: RMIN/RMAX in mm, BMAX in T,\n"
+          "// coefficients for r in m. OPAL adds PSI-PHASE and PSI-BFIELD to the sign-flipped Bz, so\n"
+          "// BMAX = -bmax_T (turnfit's convention: positive strengthens the field).\n";
+    std::string list;
+    for (const CoilFit& c : fits) {
+      if (!c.error.empty()) continue;
+      const TrimCoil& t = c.coil;
+      std::string ident = t.name;
+      for (char& ch : ident)
+        if (!std::isalnum(static_cast<unsigned char>(ch)) && ch != '_') ch = '_';
+      if (ident.empty() || std::isdigit(static_cast<unsigned char>(ident[0]))) ident = "TC_" + ident;
+      auto join = [](const std::vector<double>& v) {
+        std::string s;
+        for (size_t k = 0; k < v.size(); ++k) s += (k ? ", " : "") + num17(v[k]);
+        return s;
+      };
+      std::string type = t.type == "psi-phase" ? "PSI-PHASE" : "PSI-BFIELD";
+      os << ident << ": TRIMCOIL, TYPE = \"" << type << "\",\n"
+         << "    RMIN = " << num17(t.rmin_mm) << ", RMAX = " << num17(t.rmax_mm) << ", BMAX = " << num17(-t.bmax_T) << ",\n"
+         << "    COEFNUM = {" << join(t.coefnum) << "},\n"
+         << "    COEFDENOM = {" << join(t.coefdenom) << "};\n";
+      list += (list.empty() ? "" : ", ") + ident;
+    }
+    os << "// Ring: CYCLOTRON, TRIMCOILTHRESHOLD = ..., TRIMCOIL = {" << list << "}, ...;\n";
+    return;
+  }
+  if (o.common.format == "csv") {
+    if (prov) os << cli::provenance_comment();
+    os << "# b_shape: field profile normalized to a peak of +1 (the coil's field is bmax_T * b_shape);"
+          " db_dr_shape per mm; *_sigma: 1-sigma from the fit's covariance\n";
+    os << "coil,r_mm,dsinphi_fit,dsinphi_sigma,b_shape,b_shape_sigma,db_dr_shape\n";
+    char buf[256];
+    for (const CoilFit& c : fits) {
+      if (!c.error.empty()) continue;
+      std::vector<double> rs;
+      for (double r : c.data.r_mm)
+        if (r >= c.r_lo_mm && r <= c.r_hi_mm) rs.push_back(r);
+      const long steps = static_cast<long>(std::ceil((c.r_hi_mm - c.r_lo_mm) / o.grid_mm - 1e-9));
+      for (long k = 0; k <= steps; ++k) rs.push_back(std::min(c.r_hi_mm, c.r_lo_mm + static_cast<double>(k) * o.grid_mm));
+      std::sort(rs.begin(), rs.end());
+      rs.erase(std::unique(rs.begin(), rs.end()), rs.end());
+      for (double r : rs) {
+        double s, ds;
+        fitted_shape(c, r, s, ds);
+        std::snprintf(buf, sizeof buf, "%s,%.6f,%.9g,%.4g,%.9g,%.4g,%.9g\n", c.coil.name.c_str(), r, c.fit.value(r),
+                      c.fit.value_sigma(r), s, fitted_shape_sigma(c, r), ds * 1e-3);
+        os << buf;
+      }
+    }
+    return;
+  }
+  nlohmann::json doc;
+  if (prov) doc["provenance"] = cli::provenance();
+  doc["format"] = "turnfit-trimcoils/1";
+  nlohmann::json arr = nlohmann::json::array();
+  for (const CoilFit& c : fits)
+    if (c.error.empty()) arr.push_back(coil_json(c.coil));
+  doc["trimcoils"] = arr;
+  os << doc.dump(2) << "\n";
+}
+
+nlohmann::json tcfit_report(const std::vector<CoilFit>& fits, const TcFitOptions& o) {
+  using nlohmann::json;
+  json doc;
+  if (!o.common.no_provenance) doc["provenance"] = cli::provenance();
+  doc["format"] = "turnfit-tcfit-report/1";
+  doc["type"] = o.type;
+  doc["degrees"] = o.degrees;
+  if (o.degrees == "auto") doc["criterion"] = o.criterion;
+  json coils = json::array();
+  for (const CoilFit& c : fits) {
+    json j;
+    j["name"] = c.data.name;
+    j["source"] = c.data.source;
+    if (c.data.excitation_T != 0) j["excitation_T"] = c.data.excitation_T;
+    if (!c.error.empty()) {
+      j["status"] = "failed";
+      j["error"] = c.error;
+      coils.push_back(j);
+      continue;
+    }
+    const RationalFit& f = c.fit;
+    j["status"] = "ok";
+    j["window_mm"] = {c.r_lo_mm, c.r_hi_mm};
+    j["points"] = f.points;
+    j["degrees"] = {f.n, f.m};
+    j["selected_by"] = c.selected_by;
+    j["rms"] = f.rms;
+    j["max_abs"] = f.max_abs;
+    j["sigma_y"] = f.sigma_y;
+    j["condition"] = finite_or_null(f.condition);
+    j["min_denominator"] = f.min_denominator;
+    j["start"] = f.start;
+    j["iterations"] = f.iterations;
+    j["aicc"] = finite_or_null(f.aicc);
+    j["bic"] = finite_or_null(f.bic);
+    // The fitted parameters themselves, in the variable they were fitted in.
+    json sc;
+    sc["x"] = "(r_mm - centre_mm) / half_width_mm";
+    sc["centre_mm"] = f.centre;
+    sc["half_width_mm"] = f.half_width;
+    sc["a"] = f.a;
+    sc["b"] = f.b;
+    json sa = json::array(), sb = json::array({0.0});
+    for (int k = 0; k < f.parameters(); ++k) (k <= f.n ? sa : sb).push_back(finite_or_null(f.sigma[static_cast<size_t>(k)]));
+    sc["sigma_a"] = sa;
+    sc["sigma_b"] = sb;
+    j["scaled"] = sc;
+    double s_lo, s_hi, d;
+    fitted_shape(c, c.r_lo_mm, s_lo, d);
+    fitted_shape(c, c.r_hi_mm, s_hi, d);
+    j["peak"] = {{"r_mm", c.peak_r_mm}, {"slope_per_m", c.slope_per_m}};
+    j["edge_shape"] = {s_lo, s_hi};
+    j["representation_error"] = c.representation_error;
+    if (c.weighted) j["weight"] = {{"what", "V_turn/beta over its window-centre value"}, {"at_window_ends", {c.weight_lo, c.weight_hi}}};
+    if (!c.candidates.empty()) {
+      json cand = json::array();
+      for (const RationalFit& k : c.candidates)
+        cand.push_back({{"degrees", {k.n, k.m}}, {"rms", k.rms}, {"aicc", finite_or_null(k.aicc)}, {"bic", finite_or_null(k.bic)}});
+      j["candidates"] = cand;
+      if (!c.candidate_errors.empty()) j["candidate_errors"] = c.candidate_errors;
+    }
+    j["trimcoil"] = coil_json(c.coil);
+    coils.push_back(j);
+  }
+  doc["coils"] = coils;
+  return doc;
+}
+
+int run_tcfit(const TcFitOptions& o) {
+  int n = 0, m = 0;
+  parse_degrees(o.degrees, n, m);  // a malformed --degrees is a usage error before any work
+  if (o.rmin_mm > 0 && o.rmax_mm > 0 && !(o.rmax_mm > o.rmin_mm)) throw usage_error("--rmax must exceed --rmin");
+  if (!o.machine.empty() && o.common.format != "json")
+    throw usage_error("--machine writes a machine file (JSON): leave out --format " + o.common.format);
+  size_t stdin_uses = 0;
+  for (const std::string& p : o.inputs) stdin_uses += p == "-";
+
+  if (o.turns == "-") ++stdin_uses;
+  if (stdin_uses > 1) throw usage_error("'-' (stdin) given more than once");
+  std::optional<Machine> machine;
+  if (!o.machine.empty()) machine = load_machine(o.machine);
+  std::optional<SlopeWeight> weight;
+  if (!o.turns.empty()) {
+    const double mass = o.mass_MeV > 0 ? o.mass_MeV : machine ? machine->particle.mass_MeV : 938.27208816;
+    weight = read_slope_weight(o.turns, mass);
+  }
+
+  // Read every input; a file that cannot be read is reported and skipped (the others still fit).
+  std::vector<PhaseData> all;
+  std::vector<std::string> file_errors;
+  ExitCode worst = ExitCode::ok;
+  for (const std::string& p : o.inputs) {
+    try {
+      for (PhaseData& d : read_phase_data(p)) all.push_back(std::move(d));
+    } catch (const Error& e) {
+      file_errors.push_back(e.what());
+      if (worst == ExitCode::ok || e.code() == ExitCode::no_input) worst = e.code();
+    }
+  }
+  std::map<std::string, std::string> seen;
+  for (PhaseData& d : all) {
+    auto [it, fresh] = seen.emplace(d.name, d.source);
+    if (!fresh && d.error.empty()) d.error = "coil '" + d.name + "' also in " + it->second;
+  }
+
+  std::vector<CoilFit> fits;
+  for (const PhaseData& d : all) {
+    const TrimCoil* mc = nullptr;
+    if (machine)
+      for (const TrimCoil& t : machine->trimcoils)
+        if (t.name == d.name) mc = &t;
+    if (machine && !mc)
+      cli::warn(o.common, o.machine + ": has no trim coil '" + d.name + "': it is added with bmax_T 0");
+    fits.push_back(fit_coil(d, o, mc, weight ? &*weight : nullptr));
+  }
+  // Keep the machine's peak field (a design variable) on the refitted coils.
+  size_t ok = 0;
+  for (CoilFit& c : fits) {
+    if (!c.error.empty()) {
+      if (worst == ExitCode::ok) worst = ExitCode::data;
+      continue;
+    }
+    ++ok;
+    if (machine)
+      for (const TrimCoil& t : machine->trimcoils)
+        if (t.name == c.coil.name) c.coil.bmax_T = t.bmax_T;
+  }
+
+  for (const std::string& e : file_errors) std::fprintf(stderr, "turnfit-tc-fit: %s\n", e.c_str());
+  for (const CoilFit& c : fits) {
+    if (!c.error.empty()) {
+      std::fprintf(stderr, "turnfit-tc-fit: coil %s (%s): %s\n", c.data.name.c_str(), c.data.source.c_str(), c.error.c_str());
+      continue;
+    }
+    if (o.common.quiet) continue;
+    std::fprintf(stderr,
+                 "turnfit-tc-fit: %s: degrees %d/%d (%s), %zu points in %.6g-%.6g mm, rms %.3g, max %.3g, "
+                 "condition %.3g, peak at %.6g mm\n",
+                 c.data.name.c_str(), c.fit.n, c.fit.m, c.selected_by.c_str(), c.fit.points, c.r_lo_mm, c.r_hi_mm,
+                 c.fit.rms, c.fit.max_abs, c.fit.condition, c.peak_r_mm);
+    double s_lo, s_hi, d;
+    fitted_shape(c, c.r_lo_mm, s_lo, d);
+    fitted_shape(c, c.r_hi_mm, s_hi, d);
+    if (std::max(std::fabs(s_lo), std::fabs(s_hi)) > 0.05)
+      cli::warn(o.common, c.data.name + ": the field profile is " + cli::fmt(s_lo, 3) + " and " + cli::fmt(s_hi, 3) +
+                              " of its peak at the window's ends: the coil's field jumps there (widen the window)");
+    if (c.representation_error > 1e-6)
+      cli::warn(o.common, c.data.name + ": coefficients in r reproduce the fitted profile only to " +
+                              cli::fmt(c.representation_error, 3) + " of its peak (cancellation at large r)");
+  }
+
+  // Outputs: the report always (it holds the failures), the result if any coil was fitted.
+  if (!o.report.empty()) write_output(o.report, tcfit_report(fits, o).dump(2) + "\n");
+  if (ok == 0) {
+    if (worst == ExitCode::ok) worst = ExitCode::data;
+    throw Error(worst, "no coil could be fitted");
+  }
+  std::ostringstream os;
+  if (machine) {
+    nlohmann::json doc = machine->doc;
+    for (const CoilFit& c : fits) {
+      if (!c.error.empty()) continue;
+      nlohmann::json* slot = nullptr;
+      for (auto& e : doc["trimcoils"])
+        if (e.value("name", std::string()) == c.coil.name) slot = &e;
+      if (!slot) {
+        doc["trimcoils"].push_back(nlohmann::json::object({{"name", c.coil.name}}));
+        slot = &doc["trimcoils"].back();
+      }
+      for (const char* k : {"slope_per_mm", "table"}) slot->erase(k);
+      (*slot)["type"] = c.coil.type;
+      (*slot)["rmin_mm"] = c.coil.rmin_mm;
+      (*slot)["rmax_mm"] = c.coil.rmax_mm;
+      (*slot)["bmax_T"] = c.coil.bmax_T;
+      (*slot)["coefnum"] = c.coil.coefnum;
+      (*slot)["coefdenom"] = c.coil.coefdenom;
+    }
+    rebase_paths(doc, machine->dir, o.common.output);
+    // The written machine must load: validate it where it will live.
+    const std::string out_dir = o.common.output.empty() || o.common.output == "-"
+                                    ? std::string()
+                                    : std::filesystem::absolute(o.common.output).parent_path().string();
+    machine_from_json(doc, o.common.output.empty() ? "-" : o.common.output, out_dir);
+    os << doc.dump(2) << "\n";
+  } else {
+    write_tcfit_output(os, fits, o);
+  }
+  write_output(o.common.output, os.str());
+  return static_cast<int>(worst);
+}
+
+}  // namespace turnfit
