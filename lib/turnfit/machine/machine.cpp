@@ -302,8 +302,8 @@ TrimCoil read_trimcoil(json& j, const std::string& file, const std::string& path
                        const std::string& dir, int symmetry,
                        std::map<std::string, std::string>& seen) {
   Reader r(j, file, path,
-           {"name", "type", "rmin_mm", "rmax_mm", "bmax_T", "coefnum", "coefdenom", "slope_per_mm",
-            "table", "sectors", "phimin_deg", "phimax_deg"});
+           {"name", "type", "rmin_mm", "rmax_mm", "bmax_T", "coefnum", "coefdenom", "coef_origin_mm",
+            "slope_per_mm", "table", "sectors", "phimin_deg", "phimax_deg"});
   TrimCoil t;
   t.name = element_name(r, seen);
   t.type =
@@ -316,6 +316,12 @@ TrimCoil read_trimcoil(json& j, const std::string& file, const std::string& path
   t.bmax_T = r.number("bmax_T", 0.0);
   t.coefnum = r.numbers("coefnum");
   t.coefdenom = r.numbers("coefdenom");
+  // Polynomials about the coil (tc-fit writes its window centre): coefficients in r itself
+  // cancel to 1e-4 of the peak at r ~ 4 m for the degrees a field description needs.
+  if (auto o = r.opt_number("coef_origin_mm")) {
+    t.coef_origin_mm = *o;
+    if (!(t.coef_origin_mm >= 0)) throw r.error("coef_origin_mm", "must be >= 0, got " + num(t.coef_origin_mm));
+  }
   if ((t.type == "psi-bfield" || t.type == "psi-phase") && t.coefnum.empty())
     throw r.error("coefnum", "a " + t.type + " coil needs at least one numerator coefficient");
   if (auto s = r.opt_number("slope_per_mm")) t.slope_per_mm = *s;

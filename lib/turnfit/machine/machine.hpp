@@ -65,6 +65,10 @@ struct TrimCoil {
   std::vector<int> sectors;         ///< 1-based sector magnets it sits on (empty: all)
   double phimin_deg = 0;            ///< azimuth window start [deg]
   double phimax_deg = 360;          ///< azimuth window end [deg]
+  double coef_origin_mm = 0;        ///< coefnum/coefdenom are polynomials in (r - origin) [m]
+  std::vector<double> table_r_mm{};   ///< type table given in memory (no file; not in JSON)
+  std::vector<double> table_shape{};  ///< its shape values
+  std::vector<double> table_slope{};  ///< its slopes [1/mm] (empty: monotone Fritsch-Carlson slopes)
 };
 
 /// A radial wire probe: points s*(cos phi, sin phi) + a*(sin phi, -cos phi), s in [s_min, s_max],

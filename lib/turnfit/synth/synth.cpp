@@ -3,8 +3,11 @@
 #include "turnfit/synth/synth.hpp"
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <map>
+#include <mutex>
+#include <thread>
 
 #include "turnfit/io/error.hpp"
 #include "turnfit/physics/particle.hpp"
@@ -254,6 +257,47 @@ PhaseScan phase_scan(const Machine& m, size_t coil, const TrackSettings& st, con
   std::vector<double> r0, p0;
   phase_history(m, base, st, r0, p0);
   return phase_scan_on(m, base, coil, st, pm, seed, r0, p0);
+}
+
+std::vector<std::vector<double>> phase_response(const Machine& m, const std::vector<TrimCoil>& fields,
+                                                const std::vector<double>& r_mm, const TrackSettings& st,
+                                                double azimuth_deg, unsigned threads) {
+  check_phase_machine(m);
+  TrackModel base = make_track_model(m);
+  base.probes = {phase_line(base, azimuth_deg)};
+  std::vector<double> r0, p0;
+  phase_history(m, base, st, r0, p0);
+  std::vector<double> s0(p0.size());
+  for (size_t i = 0; i < p0.size(); ++i) s0[i] = std::sin(p0[i] * kPi / 180);
+  std::vector<std::vector<double>> out(fields.size());
+  std::atomic<size_t> next{0};
+  std::mutex err_mutex;
+  std::exception_ptr err;
+  auto work = [&] {
+    for (size_t k; (k = next++) < fields.size();) {
+      try {
+        TrackModel exc = base;
+        TrimCoilField f(fields[k], base.map.grid().symmetry);
+        if (!base.opal_map) f.tabulate(base.map.grid().r_min_m(), base.map.grid().r_max_m());
+        exc.coils.push_back(std::move(f));
+        std::vector<double> r1, p1;
+        phase_history(m, exc, st, r1, p1);
+        std::vector<double> s1(p1.size());
+        for (size_t i = 0; i < p1.size(); ++i) s1[i] = std::sin(p1[i] * kPi / 180);
+        std::vector<double>& o = out[k];
+        for (double r : r_mm) o.push_back((interpolate(r1, s1, r) - interpolate(r0, s0, r)) / fields[k].bmax_T);
+      } catch (...) {
+        std::lock_guard<std::mutex> lock(err_mutex);
+        if (!err) err = std::current_exception();
+      }
+    }
+  };
+  std::vector<std::thread> pool;
+  for (unsigned t = 1; t < std::max(1u, threads); ++t) pool.emplace_back(work);
+  work();
+  for (auto& t : pool) t.join();
+  if (err) std::rethrow_exception(err);
+  return out;
 }
 
 SynthResult synthesize(const Machine& truth, const SynthSettings& s) {

@@ -122,6 +122,15 @@ void measure_profile(SynthProfile& p, const WireModel& w, std::uint64_t seed, st
 PhaseScan phase_scan(const Machine& m, size_t coil, const TrackSettings& st, const PhaseModel& pm,
                      std::uint64_t seed);
 
+/// The linear response of a phase scan to extra radial fields: for each `fields[k]` (a trim
+/// coil added to the machine's own at its bmax_T), delta sin(phi) at the radii r_mm against the
+/// machine as it is, divided by that bmax_T (so per tesla of the coil's shape). The reference
+/// particle is tracked and read exactly as phase_scan does (phase line at azimuth_deg, linear
+/// interpolation between turns); NaN where a run did not reach a radius. Threads over fields.
+std::vector<std::vector<double>> phase_response(const Machine& m, const std::vector<TrimCoil>& fields,
+                                                const std::vector<double>& r_mm, const TrackSettings& st,
+                                                double azimuth_deg, unsigned threads);
+
 /// The whole synthesis of one run (seed) on a truth machine: draws and applies the run's drift,
 /// tracks the bunch for the profiles and the reference particle for the phase scans.
 SynthResult synthesize(const Machine& truth, const SynthSettings& s);

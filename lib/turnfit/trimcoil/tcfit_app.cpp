@@ -16,6 +16,7 @@
 #include "turnfit/io/error.hpp"
 #include "turnfit/io/json.hpp"
 #include "turnfit/io/output.hpp"
+#include "turnfit/synth/synth.hpp"
 #include "turnfit/trimcoil/trimcoil.hpp"
 
 namespace turnfit {
@@ -27,7 +28,7 @@ void add_tcfit_options(CLI::App& app, TcFitOptions& o) {
       "field profile B ~ -d/dr (f/g), normalized to a peak of +1, so that bmax_T is the coil's peak\n"
       "field (paper Sec. II.C). Input: CSV r_mm,dsinphi per coil (coil from '# coil=' or the file\n"
       "name) or one file with a coil column, as turnfit-synth writes them.");
-  app.add_option("inputs", o.inputs, "Phase-shift CSV files ('-' for stdin)")->required();
+  app.add_option("inputs", o.inputs, "Phase-shift CSV files ('-' or none: stdin)");
   app.add_option("--degrees", o.degrees,
                  "Numerator/denominator degrees N/M (the paper: 2/4, and 4/5 for TC1, TC16-18), or 'auto'")
       ->capture_default_str();
@@ -47,13 +48,23 @@ void add_tcfit_options(CLI::App& app, TcFitOptions& o) {
       ->check(CLI::Range(0.0, 1e6));
   app.add_option("--rmax", o.rmax_mm, "Window end [mm] (default: the machine's coil rmax, else the data's last radius)")
       ->check(CLI::Range(0.0, 1e6));
-  app.add_option("--type", o.type,
-                 "Machine-file description: psi-phase (f/g of the phase) or psi-bfield (the field's own rational)")
-      ->check(CLI::IsMember({"psi-phase", "psi-bfield"}))
+  app.add_option("--model", o.model,
+                 "What the rational f/g describes. paper: the phase shift itself (paper Eq. 2; field = -d/dr); "
+                 "local: the field, fitted through the phase it integrates to (B ~ -d delta sin(phi)/dr, optionally "
+                 "with --turns); tracked: the field, fitted through the phase shifts the --machine predicts by "
+                 "tracking (the lag of the phase behind the field, the oscillation a coil starts, the trim coil "
+                 "threshold; the fitted peak is the scan's test excitation in tesla)")
+      ->check(CLI::IsMember({"paper", "local", "tracked"}))
       ->capture_default_str();
+  app.add_option("--type", o.type,
+                 "Machine-file description: psi-phase (f/g of the phase; paper model only) or psi-bfield (the field's "
+                 "rational; from the paper model, its exact derivative). Default: psi-phase for --model paper, else "
+                 "psi-bfield")
+      ->check(CLI::IsMember({"psi-phase", "psi-bfield"}));
   app.add_option("--report", o.report, "Write the fit report (JSON) here ('-' for stdout)");
   app.add_option("--machine", o.machine,
-                 "Replace the coils of this machine file (by name; bmax_T, sectors, window kept) and write the machine");
+                 "Take each coil's window (and bmax_T) from this machine file; with --format json, write the machine with its coils "
+                 "replaced by name (sectors, azimuth window, bmax_T kept)");
   app.add_option("--grid-mm", o.grid_mm, "csv: spacing of the fine grid [mm]")->check(CLI::Range(1e-3, 1e4))->capture_default_str();
   app.add_option("--max-iterations", o.max_iterations, "Levenberg-Marquardt iterations per start")
       ->check(CLI::Range(1, 100000))
@@ -63,7 +74,19 @@ void add_tcfit_options(CLI::App& app, TcFitOptions& o) {
                  "between phase slope and field, before fitting");
   app.add_option("--mass-MeV", o.mass_MeV, "Rest mass for beta with --turns (default: the machine's particle, else proton)")
       ->check(CLI::Range(1e-3, 1e6));
-  cli::add_common_options(app, o.common, cli::kOutput | cli::kFormat, {"json", "opal", "csv"});
+  app.add_option("--response-step-mm", o.response_step_mm, "--model tracked: knot spacing of the cubic B-spline field basis [mm]")
+      ->check(CLI::Range(1.0, 1000.0))
+      ->capture_default_str();
+  app.add_option("--phase-azimuth-deg", [&o](const std::vector<std::string>& v) {
+    try {
+      o.phase_azimuth_deg = std::stod(v.at(0));
+    } catch (...) {
+      return false;
+    }
+    o.phase_azimuth_given = true;
+    return std::isfinite(o.phase_azimuth_deg);
+  }, "--model tracked: azimuth of the phase probes [deg] (default: the scan's '# azimuth_deg=', else 0)");
+  cli::add_common_options(app, o.common, cli::kOutput | cli::kFormat | cli::kThreads, {"json", "opal", "csv"});
 }
 
 double SlopeWeight::at(double r) const {
@@ -158,30 +181,11 @@ bool parse_degrees(const std::string& s, int& n, int& m) {
 
 double criterion_of(const RationalFit& f, const std::string& c) { return c == "bic" ? f.bic : f.aicc; }
 
-// Polynomial helpers on coefficient vectors (lowest degree first).
-std::vector<double> poly_mul(const std::vector<double>& p, const std::vector<double>& q) {
-  std::vector<double> r(p.size() + q.size() - 1, 0.0);
-  for (size_t i = 0; i < p.size(); ++i)
-    for (size_t j = 0; j < q.size(); ++j) r[i + j] += p[i] * q[j];
-  return r;
-}
-std::vector<double> poly_der(const std::vector<double>& p) {
-  if (p.size() < 2) return {0.0};
-  std::vector<double> d(p.size() - 1);
-  for (size_t k = 1; k < p.size(); ++k) d[k - 1] = static_cast<double>(k) * p[k];
-  return d;
-}
-std::vector<double> poly_sub(std::vector<double> p, const std::vector<double>& q) {
-  if (q.size() > p.size()) p.resize(q.size(), 0.0);
-  for (size_t k = 0; k < q.size(); ++k) p[k] -= q[k];
-  return p;
-}
-
 /// u(r) = -d(f/g)/dr [1/m]: the unnormalized field shape (paper Eq. 3, B ~ -d sin(phi)/dr).
 double raw_shape(const RationalFit& f, double r_mm) {
-  double q, dq, d2q;
-  f.eval(r_mm, q, dq, d2q);
-  return -dq * 1e3;
+  double dy, d2y;
+  f.slope(r_mm, dy, d2y);
+  return -dy * 1e3;
 }
 
 /// Where |u| peaks on [lo, hi]: a dense scan, then golden-section refinement.
@@ -207,46 +211,56 @@ double peak_of(const RationalFit& f, double lo, double hi) {
   return std::fabs(raw_shape(f, r)) >= best ? r : best_r;
 }
 
-/// The machine-file entry of a fit: coefficients in r [m], scaled so the field shape peaks at +1.
+/// Coefficients of p(r - origin) as a polynomial in r itself (OPAL's form), in long double.
+std::vector<double> about_zero(const std::vector<double>& c, double origin_m) {
+  return polynomial_in_r(c, origin_m, 1.0);
+}
+
+/// Largest |shape of entry t - fitted shape| on the window (shape peak 1).
+double representation_error(const CoilFit& c, TrimCoil t) {
+  t.bmax_T = 1;
+  TrimCoilField field(t, 1);
+  double err = 0;
+  for (int i = 0; i <= 2000; ++i) {
+    const double r = c.r_lo_mm + (c.r_hi_mm - c.r_lo_mm) * i / 2000;
+    double s, ds, se, dse;
+    field.shape_exact(r * 1e-3, s, ds);
+    fitted_shape(c, r, se, dse);
+    err = std::max(err, std::fabs(s - se));
+  }
+  return err;
+}
+
+/// The machine-file entry of a fit, normalized so the field shape peaks at +1: polynomials in
+/// (r - window centre) [m] (coef_origin_mm), which keep full precision; the OPAL form expands
+/// them in r itself and reports what that loses.
 void build_coil(CoilFit& c, const std::string& type) {
   const RationalFit& f = c.fit;
   c.peak_r_mm = peak_of(f, c.r_lo_mm, c.r_hi_mm);
   c.slope_per_m = raw_shape(f, c.peak_r_mm);
   if (!(std::fabs(c.slope_per_m) > 0))
     throw Error(ExitCode::data, "the fitted phase shift is flat on the window: it implies no field");
-  const double cm = f.centre * 1e-3, hm = f.half_width * 1e-3, inv = 1 / c.slope_per_m;
+  const double hm = f.half_width * 1e-3, inv = 1 / c.slope_per_m;
   TrimCoil& t = c.coil;
   t.name = c.data.name;
-  t.type = type;
   t.rmin_mm = c.r_lo_mm;
   t.rmax_mm = c.r_hi_mm;
   t.bmax_T = 0;
-  if (type == "psi-phase") {
-    // OPAL's PSI-PHASE: B = -bmax d(f/g)/dr, so f/g itself is the phase shift over the divisor.
-    std::vector<double> num = f.a;
-    for (double& v : num) v *= inv;
-    t.coefnum = polynomial_in_r(num, cm, hm);
-    t.coefdenom = polynomial_in_r(f.b, cm, hm);
-  } else {
-    // d(f/g)/dr = (f' g - f g') / (h g^2) in the scaled variable (quotient rule, paper Eq. 3).
-    std::vector<double> p = poly_sub(poly_mul(poly_der(f.a), f.b), poly_mul(f.a, poly_der(f.b)));
-    for (double& v : p) v *= -inv / hm;
-    t.coefnum = polynomial_in_r(p, cm, hm);
-    t.coefdenom = polynomial_in_r(poly_mul(f.b, f.b), cm, hm);
-  }
-  // What the coefficients in r (doubles, as a machine file and OPAL hold them) lose against the
-  // scaled fit: the cancellation of large terms at r ~ 4 m.
-  t.bmax_T = 1;
-  TrimCoilField field(t, 1);
-  t.bmax_T = 0;
-  c.representation_error = 0;
-  for (int i = 0; i <= 2000; ++i) {
-    const double r = c.r_lo_mm + (c.r_hi_mm - c.r_lo_mm) * i / 2000;
-    double s, ds, se, dse;
-    field.shape_exact(r * 1e-3, s, ds);
-    fitted_shape(c, r, se, dse);
-    c.representation_error = std::max(c.representation_error, std::fabs(s - se));
-  }
+  t.coef_origin_mm = f.centre;
+  std::vector<double> num = f.a;
+  // paper: OPAL's PSI-PHASE field is -bmax d(f/g)/dr, so f/g itself is the phase over the divisor;
+  // local and tracked: f/g is the field, -dy/dr = (f/g) / half_width.
+  for (double& v : num) v *= f.model == RationalModel::value ? inv : inv / hm;
+  t.type = f.model == RationalModel::value ? "psi-phase" : "psi-bfield";
+  t.coefnum = polynomial_in_r(num, 0.0, hm);
+  t.coefdenom = polynomial_in_r(f.b, 0.0, hm);
+  if (type == "psi-bfield" && t.type == "psi-phase") t = bfield_from_phase(t);
+  c.representation_error = representation_error(c, t);
+  c.opal_coil = t;
+  c.opal_coil.coef_origin_mm = 0;
+  c.opal_coil.coefnum = about_zero(t.coefnum, f.centre * 1e-3);
+  c.opal_coil.coefdenom = about_zero(t.coefdenom, f.centre * 1e-3);
+  c.opal_representation_error = representation_error(c, c.opal_coil);
 }
 
 /// The fit window of a coil: --rmin/--rmax, else the machine coil's support, each clipped to the
@@ -279,6 +293,12 @@ std::vector<PhaseData> read_phase_data(const std::string& path) {
     excitation = std::strtod(it->second.c_str(), &end);
     if (end == it->second.c_str() || *end || !std::isfinite(excitation)) excitation = 0;
   }
+  double azimuth = 0;
+  if (auto it = meta.find("azimuth_deg"); it != meta.end()) {
+    char* end = nullptr;
+    azimuth = std::strtod(it->second.c_str(), &end);
+    if (end == it->second.c_str() || *end || !std::isfinite(azimuth)) azimuth = 0;
+  }
   std::string file_coil;
   if (!has_coil) {
     if (auto it = meta.find("coil"); it != meta.end()) file_coil = it->second;
@@ -298,6 +318,7 @@ std::vector<PhaseData> read_phase_data(const std::string& path) {
       d.name = name;
       d.source = t.name();
       d.excitation_T = excitation;
+      d.azimuth_deg = azimuth;
       out.push_back(std::move(d));
     }
     PhaseData& d = out[it->second];
@@ -317,6 +338,80 @@ std::vector<PhaseData> read_phase_data(const std::string& path) {
   return out;
 }
 
+LinearResponse coil_response(const Machine& m, const TrimCoil* mc, const std::vector<double>& r_mm, double r_lo,
+                             double r_hi, double step, double azimuth_deg, unsigned threads,
+                             std::map<std::string, std::vector<double>>& cache) {
+  TrackSettings st;
+  st.integrator = m.tracking.integrator.empty() ? "azimuth" : m.tracking.integrator;
+  st.steps_per_turn = m.tracking.steps_per_turn > 0 ? m.tracking.steps_per_turn : 2880;
+  st.step_deg = m.tracking.step_deg;
+  st.turns = m.tracking.turns;
+  if (!(st.turns > 0)) throw data_error(m.path, 0, "/tracking/turns: --model tracked tracks the machine; it has no turn count");
+  // The knots: multiples of the step inside the window (shared between coils, so cached).
+  std::vector<long> knots;
+  for (long k = static_cast<long>(std::ceil(r_lo / step - 1e-9)); static_cast<double>(k) * step <= r_hi + 1e-9; ++k)
+    knots.push_back(k);
+  if (knots.size() < 3)
+    throw Error(ExitCode::data, "the window is narrower than 2 knots of the response basis (--response-step-mm " +
+                                    cli::fmt(step) + ")");
+  std::string key = "sectors";
+  if (mc) {
+    for (int s : mc->sectors) key += " " + std::to_string(s);
+    key += " phi " + cli::fmt(mc->phimin_deg) + " " + cli::fmt(mc->phimax_deg);
+  }
+  key += " step " + cli::fmt(step) + " az " + cli::fmt(azimuth_deg) + " at";
+  for (double r : r_mm) key += " " + cli::fmt(r);
+  constexpr double kEps = 1e-4;  // T: small enough to stay linear, large against round-off
+  std::vector<TrimCoil> todo;
+  std::vector<std::string> todo_keys;
+  for (long k : knots) {
+    const std::string kk = key + " knot " + std::to_string(k);
+    if (cache.count(kk)) continue;
+    const double t = static_cast<double>(k) * step;
+    TrimCoil b;
+    b.name = "basis" + std::to_string(k);
+    b.type = "table";
+    b.rmin_mm = t - 2 * step;
+    b.rmax_mm = t + 2 * step;
+    b.bmax_T = kEps;
+    if (mc) {
+      b.sectors = mc->sectors;
+      b.phimin_deg = mc->phimin_deg;
+      b.phimax_deg = mc->phimax_deg;
+    }
+    // The uniform cubic B-spline: values and exact slopes at its knots, so the Hermite table
+    // is the spline itself.
+    for (int j = -2; j <= 2; ++j) b.table_r_mm.push_back(t + j * step);
+    b.table_shape = {0, 1.0 / 6, 2.0 / 3, 1.0 / 6, 0};
+    b.table_slope = {0, 0.5 / step, 0, -0.5 / step, 0};
+    todo.push_back(b);
+    todo_keys.push_back(kk);
+  }
+  if (!todo.empty()) {
+    const auto cols = phase_response(m, todo, r_mm, st, azimuth_deg, threads);
+    for (size_t i = 0; i < todo.size(); ++i) cache[todo_keys[i]] = cols[i];
+  }
+  const auto G = static_cast<Eigen::Index>(knots.size());
+  Eigen::MatrixXd Kb(static_cast<Eigen::Index>(r_mm.size()), G);
+  for (Eigen::Index j = 0; j < G; ++j) {
+    const auto& col = cache.at(key + " knot " + std::to_string(knots[static_cast<size_t>(j)]));
+    for (size_t i = 0; i < r_mm.size(); ++i) Kb(static_cast<Eigen::Index>(i), j) = col[i];
+  }
+  // Spline coefficients from samples: exact for cubics inside, the samples themselves at the ends.
+  Eigen::MatrixXd Q = Eigen::MatrixXd::Zero(G, G);
+  Q(0, 0) = 1;
+  Q(G - 1, G - 1) = 1;
+  for (Eigen::Index j = 1; j + 1 < G; ++j) {
+    Q(j, j - 1) = -1.0 / 6;
+    Q(j, j) = 8.0 / 6;
+    Q(j, j + 1) = -1.0 / 6;
+  }
+  LinearResponse lr;
+  for (long k : knots) lr.r_grid.push_back(static_cast<double>(k) * step);
+  lr.K = Kb * Q;
+  return lr;
+}
+
 double fitted_shape_sigma(const CoilFit& c, double r_mm) {
   if (c.fit.covariance.size() == 0 || c.slope_per_m == 0) return kNaN;
   double s, ds;
@@ -331,13 +426,14 @@ double fitted_shape_sigma(const CoilFit& c, double r_mm) {
 void fitted_shape(const CoilFit& c, double r_mm, double& s, double& ds) {
   s = ds = 0;
   if (r_mm < c.r_lo_mm || r_mm > c.r_hi_mm || c.slope_per_m == 0) return;
-  double q, dq, d2q;
-  c.fit.eval(r_mm, q, dq, d2q);
-  s = -dq * 1e3 / c.slope_per_m;
-  ds = -d2q * 1e6 / c.slope_per_m;
+  double dy, d2y;
+  c.fit.slope(r_mm, dy, d2y);
+  s = -dy * 1e3 / c.slope_per_m;
+  ds = -d2y * 1e6 / c.slope_per_m;
 }
 
-CoilFit fit_coil(const PhaseData& input, const TcFitOptions& o, const TrimCoil* mc, const SlopeWeight* weight) {
+CoilFit fit_coil(const PhaseData& input, const TcFitOptions& o, const TrimCoil* mc, const SlopeWeight* weight,
+                 const LinearResponse* response) {
   CoilFit c;
   c.data = input;
   if (!input.error.empty()) {
@@ -360,9 +456,17 @@ CoilFit fit_coil(const PhaseData& input, const TcFitOptions& o, const TrimCoil* 
       c.weight_hi = weight->at(c.r_hi_mm) / wref;
       c.data = data;
     }
+    // psi-phase: the paper's model, f/g through the phase shift itself; psi-bfield: f/g is the
+    // field bump, fitted through the phase it integrates to (a decaying rational suits a bump far
+    // better than a step, which pulls poles towards the real axis).
+    const RationalModel model = o.model == "paper"   ? RationalModel::value
+                                : o.model == "tracked" ? RationalModel::response
+                                                       : RationalModel::integral;
+    if (model == RationalModel::response && !response)
+      throw Error(ExitCode::software, "fit_coil: --model tracked without a response");
     int n = 0, m = 0;
     if (parse_degrees(o.degrees, n, m)) {
-      c.fit = fit_rational(data.r_mm, data.dsinphi, c.r_lo_mm, c.r_hi_mm, n, m, {}, o.max_iterations);
+      c.fit = fit_rational(data.r_mm, data.dsinphi, c.r_lo_mm, c.r_hi_mm, n, m, {}, o.max_iterations, model, response);
       c.selected_by = "--degrees";
     } else {
       // Every (n, m) up to the limits that leaves the criterion defined (N - p - 1 > 0); each
@@ -371,13 +475,16 @@ CoilFit fit_coil(const PhaseData& input, const TcFitOptions& o, const TrimCoil* 
       size_t npts = 0;
       for (double r : data.r_mm) npts += r >= c.r_lo_mm && r <= c.r_hi_mm;
       std::map<std::pair<int, int>, size_t> done;
+      const int extra = model == RationalModel::integral ? 1 : 0;
       for (int mm = 0; mm <= o.max_denominator; ++mm) {
         for (int nn = 0; nn <= o.max_numerator; ++nn) {
-          if (static_cast<size_t>(nn + 1 + mm) + 1 >= npts) continue;
+          if (static_cast<size_t>(nn + 1 + mm + extra) + 1 >= npts) continue;
+          // A field model must fall off away from the coil like a bump: m >= n + 2 (f/g ~ x^-2).
+          if (model != RationalModel::value && mm < nn + 2) continue;
           std::vector<RationalFit> starts;
           if (auto it = done.find({nn - 1, mm}); it != done.end()) starts.push_back(c.candidates[it->second]);
           try {
-            RationalFit f = fit_rational(data.r_mm, data.dsinphi, c.r_lo_mm, c.r_hi_mm, nn, mm, starts, o.max_iterations);
+            RationalFit f = fit_rational(data.r_mm, data.dsinphi, c.r_lo_mm, c.r_hi_mm, nn, mm, starts, o.max_iterations, model, response);
             done[{nn, mm}] = c.candidates.size();
             c.candidates.push_back(std::move(f));
           } catch (const Error& e) {
@@ -388,13 +495,30 @@ CoilFit fit_coil(const PhaseData& input, const TcFitOptions& o, const TrimCoil* 
       if (c.candidates.empty())
         throw Error(ExitCode::data, std::to_string(npts) + " points in the window: too few for any rational fit" +
                                         (c.candidate_errors.empty() ? "" : " (" + c.candidate_errors.front() + ")"));
-      size_t best = 0;
-      for (size_t k = 1; k < c.candidates.size(); ++k)
-        if (criterion_of(c.candidates[k], o.criterion) < criterion_of(c.candidates[best], o.criterion)) best = k;
+      // The criterion picks among the candidates whose field falls off inside the window (at most
+      // 0.3 of its peak at both ends: a coil's field does, and a fit whose peak sits on the
+      // window's edge is fitting the step's shoulder); only if none does, among all.
+      auto falls_off = [&](const RationalFit& f) {
+        const double pk = std::fabs(raw_shape(f, peak_of(f, c.r_lo_mm, c.r_hi_mm)));
+        return pk > 0 && std::fabs(raw_shape(f, c.r_lo_mm)) <= 0.3 * pk && std::fabs(raw_shape(f, c.r_hi_mm)) <= 0.3 * pk;
+      };
+      std::vector<bool> ok(c.candidates.size());
+      bool any_ok = false;
+      for (size_t k = 0; k < c.candidates.size(); ++k) {
+        ok[k] = falls_off(c.candidates[k]);
+        any_ok = any_ok || ok[k];
+      }
+      size_t best = c.candidates.size();
+      for (size_t k = 0; k < c.candidates.size(); ++k) {
+        if (any_ok && !ok[k]) continue;
+        if (best == c.candidates.size() ||
+            criterion_of(c.candidates[k], o.criterion) < criterion_of(c.candidates[best], o.criterion))
+          best = k;
+      }
       c.fit = c.candidates[best];
-      c.selected_by = o.criterion;
+      c.selected_by = o.criterion + (any_ok ? " (among fits falling off inside the window)" : " (no fit falls off inside the window)");
     }
-    build_coil(c, o.type);
+    build_coil(c, o.type.empty() ? (o.model == "paper" ? "psi-phase" : "psi-bfield") : o.type);
   } catch (const Error& e) {
     c.error = e.what();
   }
@@ -411,7 +535,8 @@ std::string num17(double v) {
 
 nlohmann::json coil_json(const TrimCoil& t) {
   return {{"name", t.name},       {"type", t.type},       {"rmin_mm", t.rmin_mm},     {"rmax_mm", t.rmax_mm},
-          {"bmax_T", t.bmax_T},   {"coefnum", t.coefnum}, {"coefdenom", t.coefdenom}};
+          {"bmax_T", t.bmax_T},   {"coef_origin_mm", t.coef_origin_mm}, {"coefnum", t.coefnum},
+          {"coefdenom", t.coefdenom}};
 }
 
 /// A JSON number or null (JSON has no NaN or infinity).
@@ -455,7 +580,7 @@ void write_tcfit_output(std::ostream& os, const std::vector<CoilFit>& fits, cons
     std::string list;
     for (const CoilFit& c : fits) {
       if (!c.error.empty()) continue;
-      const TrimCoil& t = c.coil;
+      const TrimCoil& t = c.opal_coil;
       std::string ident = t.name;
       for (char& ch : ident)
         if (!std::isalnum(static_cast<unsigned char>(ch)) && ch != '_') ch = '_';
@@ -515,7 +640,8 @@ nlohmann::json tcfit_report(const std::vector<CoilFit>& fits, const TcFitOptions
   json doc;
   if (!o.common.no_provenance) doc["provenance"] = cli::provenance();
   doc["format"] = "turnfit-tcfit-report/1";
-  doc["type"] = o.type;
+  doc["model"] = o.model;
+  doc["type"] = o.type.empty() ? (o.model == "paper" ? "psi-phase" : "psi-bfield") : o.type;
   doc["degrees"] = o.degrees;
   if (o.degrees == "auto") doc["criterion"] = o.criterion;
   json coils = json::array();
@@ -552,8 +678,13 @@ nlohmann::json tcfit_report(const std::vector<CoilFit>& fits, const TcFitOptions
     sc["half_width_mm"] = f.half_width;
     sc["a"] = f.a;
     sc["b"] = f.b;
+    sc["describes"] = f.model == RationalModel::value ? "y = f/g" : "y = c - integral_{-1}^{x} f/g dx'";
+    if (f.model == RationalModel::integral) {
+      sc["c"] = f.offset;
+      sc["sigma_c"] = finite_or_null(f.sigma.back());
+    }
     json sa = json::array(), sb = json::array({0.0});
-    for (int k = 0; k < f.parameters(); ++k) (k <= f.n ? sa : sb).push_back(finite_or_null(f.sigma[static_cast<size_t>(k)]));
+    for (int k = 0; k <= f.n + f.m; ++k) (k <= f.n ? sa : sb).push_back(finite_or_null(f.sigma[static_cast<size_t>(k)]));
     sc["sigma_a"] = sa;
     sc["sigma_b"] = sb;
     j["scaled"] = sc;
@@ -563,6 +694,13 @@ nlohmann::json tcfit_report(const std::vector<CoilFit>& fits, const TcFitOptions
     j["peak"] = {{"r_mm", c.peak_r_mm}, {"slope_per_m", c.slope_per_m}};
     j["edge_shape"] = {s_lo, s_hi};
     j["representation_error"] = c.representation_error;
+    j["opal_representation_error"] = c.opal_representation_error;
+    if (f.model == RationalModel::response) {
+      // f/g is the field [T] of the scan's test excitation as the model's coil would make it.
+      double q, dq, d2q;
+      f.eval(c.peak_r_mm, q, dq, d2q);
+      j["peak_field_T"] = q;
+    }
     if (c.weighted) j["weight"] = {{"what", "V_turn/beta over its window-centre value"}, {"at_window_ends", {c.weight_lo, c.weight_hi}}};
     if (!c.candidates.empty()) {
       json cand = json::array();
@@ -582,10 +720,17 @@ int run_tcfit(const TcFitOptions& o) {
   int n = 0, m = 0;
   parse_degrees(o.degrees, n, m);  // a malformed --degrees is a usage error before any work
   if (o.rmin_mm > 0 && o.rmax_mm > 0 && !(o.rmax_mm > o.rmin_mm)) throw usage_error("--rmax must exceed --rmin");
-  if (!o.machine.empty() && o.common.format != "json")
-    throw usage_error("--machine writes a machine file (JSON): leave out --format " + o.common.format);
+  const std::vector<std::string> inputs = o.inputs.empty() ? std::vector<std::string>{"-"} : o.inputs;
   size_t stdin_uses = 0;
-  for (const std::string& p : o.inputs) stdin_uses += p == "-";
+  for (const std::string& p : inputs) stdin_uses += p == "-";
+  auto is_stdout = [](const std::string& p) { return p.empty() || p == "-"; };
+  if (!o.report.empty() && is_stdout(o.report) && is_stdout(o.common.output))
+    throw usage_error("--report - and the result would both go to stdout: give -o FILE or --report FILE");
+  // Both outputs are opened (as temporaries) before any work, so a result that cannot be
+  // written leaves no report behind, and neither appears before both are complete.
+  std::optional<OutputFile> out_result, out_report;
+  out_result.emplace(o.common.output);
+  if (!o.report.empty()) out_report.emplace(o.report);
 
   if (o.turns == "-") ++stdin_uses;
   if (stdin_uses > 1) throw usage_error("'-' (stdin) given more than once");
@@ -601,7 +746,7 @@ int run_tcfit(const TcFitOptions& o) {
   std::vector<PhaseData> all;
   std::vector<std::string> file_errors;
   ExitCode worst = ExitCode::ok;
-  for (const std::string& p : o.inputs) {
+  for (const std::string& p : inputs) {
     try {
       for (PhaseData& d : read_phase_data(p)) all.push_back(std::move(d));
     } catch (const Error& e) {
@@ -615,6 +760,13 @@ int run_tcfit(const TcFitOptions& o) {
     if (!fresh && d.error.empty()) d.error = "coil '" + d.name + "' also in " + it->second;
   }
 
+  const bool tracked = o.model == "tracked";
+  if (o.model != "paper" && o.type == "psi-phase")
+    throw usage_error("--model " + o.model + " fits the field itself: its description is psi-bfield");
+  if (tracked && !machine) throw usage_error("--model tracked tracks a machine: give --machine");
+  if (tracked && weight) throw usage_error("--model tracked already holds the V_turn/beta factor: leave out --turns");
+  std::map<std::string, std::vector<double>> response_cache;
+  const unsigned threads = cli::resolve_threads(o.common.threads);
   std::vector<CoilFit> fits;
   for (const PhaseData& d : all) {
     const TrimCoil* mc = nullptr;
@@ -623,6 +775,22 @@ int run_tcfit(const TcFitOptions& o) {
         if (t.name == d.name) mc = &t;
     if (machine && !mc)
       cli::warn(o.common, o.machine + ": has no trim coil '" + d.name + "': it is added with bmax_T 0");
+    if (tracked && d.error.empty() && !d.r_mm.empty()) {
+      // The window first (as fit_coil chooses it), then the response of this coil's scan.
+      CoilFit probe;
+      probe.data = d;
+      try {
+        choose_window(probe, o, mc);
+        const double az = o.phase_azimuth_given ? o.phase_azimuth_deg : d.azimuth_deg;
+        const LinearResponse lr = coil_response(*machine, mc, d.r_mm, probe.r_lo_mm, probe.r_hi_mm, o.response_step_mm,
+                                                az, threads, response_cache);
+        fits.push_back(fit_coil(d, o, mc, nullptr, &lr));
+      } catch (const Error& e) {
+        probe.error = e.what();
+        fits.push_back(probe);
+      }
+      continue;
+    }
     fits.push_back(fit_coil(d, o, mc, weight ? &*weight : nullptr));
   }
   // Keep the machine's peak field (a design variable) on the refitted coils.
@@ -657,18 +825,23 @@ int run_tcfit(const TcFitOptions& o) {
       cli::warn(o.common, c.data.name + ": the field profile is " + cli::fmt(s_lo, 3) + " and " + cli::fmt(s_hi, 3) +
                               " of its peak at the window's ends: the coil's field jumps there (widen the window)");
     if (c.representation_error > 1e-6)
-      cli::warn(o.common, c.data.name + ": coefficients in r reproduce the fitted profile only to " +
-                              cli::fmt(c.representation_error, 3) + " of its peak (cancellation at large r)");
+      cli::warn(o.common, c.data.name + ": the coefficients reproduce the fitted profile only to " +
+                              cli::fmt(c.representation_error, 3) + " of its peak");
+    if (o.common.format == "opal" && c.opal_representation_error > 1e-6)
+      cli::warn(o.common, c.data.name + ": OPAL's coefficients in r reproduce the fitted profile only to " +
+                              cli::fmt(c.opal_representation_error, 3) + " of its peak (terms of r^k cancel at r ~ " +
+                              cli::fmt(c.coil.coef_origin_mm * 1e-3, 2) + " m)");
   }
 
   // Outputs: the report always (it holds the failures), the result if any coil was fitted.
-  if (!o.report.empty()) write_output(o.report, tcfit_report(fits, o).dump(2) + "\n");
+  if (out_report) out_report->stream() << tcfit_report(fits, o).dump(2) << "\n";
   if (ok == 0) {
+    if (out_report) out_report->commit();
     if (worst == ExitCode::ok) worst = ExitCode::data;
     throw Error(worst, "no coil could be fitted");
   }
   std::ostringstream os;
-  if (machine) {
+  if (machine && o.common.format == "json") {
     nlohmann::json doc = machine->doc;
     for (const CoilFit& c : fits) {
       if (!c.error.empty()) continue;
@@ -686,6 +859,7 @@ int run_tcfit(const TcFitOptions& o) {
       (*slot)["bmax_T"] = c.coil.bmax_T;
       (*slot)["coefnum"] = c.coil.coefnum;
       (*slot)["coefdenom"] = c.coil.coefdenom;
+      (*slot)["coef_origin_mm"] = c.coil.coef_origin_mm;
     }
     rebase_paths(doc, machine->dir, o.common.output);
     // The written machine must load: validate it where it will live.
@@ -697,7 +871,9 @@ int run_tcfit(const TcFitOptions& o) {
   } else {
     write_tcfit_output(os, fits, o);
   }
-  write_output(o.common.output, os.str());
+  out_result->stream() << os.str();
+  out_result->commit();
+  if (out_report) out_report->commit();
   return static_cast<int>(worst);
 }
 

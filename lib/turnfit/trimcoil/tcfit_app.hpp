@@ -3,6 +3,7 @@
 
 #include <CLI/CLI.hpp>
 #include <nlohmann/json.hpp>
+#include <map>
 #include <ostream>
 #include <string>
 #include <vector>
@@ -23,12 +24,16 @@ struct TcFitOptions {
   int max_denominator = 6;             ///< auto: largest denominator degree tried
   double rmin_mm = 0;                  ///< window start (0: per coil, see window())
   double rmax_mm = 0;                  ///< window end
-  std::string type = "psi-phase";      ///< psi-phase | psi-bfield
+  std::string model = "paper";         ///< paper | local | tracked (what f/g describes, see --help)
+  std::string type;                    ///< psi-phase | psi-bfield (empty: psi-phase for paper, else psi-bfield)
   std::string report;                  ///< report JSON path (empty: none)
   std::string machine;                 ///< machine whose coils are replaced (empty: none)
   double grid_mm = 1;                  ///< csv: spacing of the fine grid
   int max_iterations = 400;            ///< Levenberg-Marquardt iterations per start
   std::string turns;                   ///< track's turns table: weights V_turn/beta (empty: none)
+  double response_step_mm = 10;        ///< knot spacing of the response's B-spline basis
+  double phase_azimuth_deg = 0;        ///< phase probes' azimuth (default: the scan's '# azimuth_deg=')
+  bool phase_azimuth_given = false;
   double mass_MeV = 0;                 ///< rest mass for beta (0: the machine's particle, else proton)
 };
 
@@ -61,6 +66,7 @@ struct PhaseData {
   std::vector<double> r_mm, dsinphi;
   std::vector<long> lines;          ///< source line of each point
   double excitation_T = 0;          ///< '# excitation_T=' of the scan (0: not given)
+  double azimuth_deg = 0;           ///< '# azimuth_deg=' of the phase probes (0: not given)
   std::string error;                ///< non-empty: the data cannot be used (message)
 };
 
@@ -82,7 +88,9 @@ struct CoilFit {
   TrimCoil coil;                    ///< the machine-file entry (normalized: peak field shape +1)
   double peak_r_mm = 0;             ///< where |field shape| peaks
   double slope_per_m = 0;           ///< -d(dsinphi)/dr there (the normalization divisor) [1/m]
-  double representation_error = 0; ///< max |shape(coefficients in r) - shape(scaled fit)|
+  double representation_error = 0; ///< max |shape(machine-file coefficients) - shape(scaled fit)|
+  double opal_representation_error = 0;  ///< the same for OPAL's coefficients in r itself
+  TrimCoil opal_coil;               ///< the entry with coefficients in r (origin 0), for OPAL
   bool weighted = false;            ///< the scan was corrected by a SlopeWeight
   double weight_lo = 1, weight_hi = 1;  ///< the weight at the window's ends over its centre value
 };
@@ -91,7 +99,18 @@ struct CoilFit {
 /// With a weight, the scan is first turned into a field-proportional phase:
 /// S'(r_i+1) = S'(r_i) + w(r_mid)/w(centre) (S(r_i+1) - S(r_i)), whose slope follows the field.
 CoilFit fit_coil(const PhaseData& data, const TcFitOptions& o, const TrimCoil* machine_coil = nullptr,
-                 const SlopeWeight* weight = nullptr);
+                 const SlopeWeight* weight = nullptr, const LinearResponse* response = nullptr);
+
+/// The tracked response of a coil's scan (--model tracked): cubic B-splines on knots every
+/// `step_mm` over the window (exact partition of unity, held by in-memory tables with exact
+/// slopes), each added to the machine as a coil with the machine coil's sectors and azimuth
+/// window, the reference particle tracked (turnfit-synth's phase scan), and the phase shifts
+/// at the scan's radii taken per tesla; then the quasi-interpolant (-R_{j-1} + 8 R_j - R_{j+1}) / 6
+/// maps field samples R(t_j) to spline coefficients, so K R(t) is the predicted scan. `cache`
+/// keeps the runs of knots already tracked (shared by coils with the same sectors and window).
+LinearResponse coil_response(const Machine& m, const TrimCoil* machine_coil, const std::vector<double>& r_mm,
+                             double r_lo, double r_hi, double step_mm, double azimuth_deg, unsigned threads,
+                             std::map<std::string, std::vector<double>>& cache);
 
 /// One-sigma uncertainty of the normalized field shape at r (delta method through the fit's
 /// covariance, including the normalization at the peak); NaN without a covariance.

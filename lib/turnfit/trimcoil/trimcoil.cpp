@@ -59,7 +59,15 @@ TrimCoilField::TrimCoilField(const TrimCoil& coil, int symmetry) : coil_(coil), 
   if ((kind_ == 0 || kind_ == 1) && coil.coefnum.empty())
     throw Error(ExitCode::data, where + ": coefnum is empty");
   if (kind_ == 2 && !(coil.slope_per_mm > 0)) throw Error(ExitCode::data, where + ": slope_per_mm must be positive");
-  if (kind_ == 3) {
+  if (kind_ == 3 && coil.table.empty() && !coil.table_r_mm.empty()) {  // in memory
+    if (coil.table_r_mm.size() != coil.table_shape.size() || coil.table_r_mm.size() < 2)
+      throw Error(ExitCode::software, where + ": in-memory table sizes differ or hold fewer than 2 rows");
+    for (size_t i = 0; i < coil.table_r_mm.size(); ++i) {
+      tr_.push_back(coil.table_r_mm[i] * 1e-3);
+      ts_.push_back(coil.table_shape[i]);
+      if (i > 0 && !(tr_[i] > tr_[i - 1])) throw Error(ExitCode::software, where + ": table radii must increase");
+    }
+  } else if (kind_ == 3) {
     CsvTable t = CsvTable::read(coil.table);
     t.require_columns({"r_mm", "b_shape"});
     const size_t cr = t.column("r_mm"), cs = t.column("b_shape");
@@ -70,6 +78,8 @@ TrimCoilField::TrimCoilField(const TrimCoil& coil, int symmetry) : coil_(coil), 
         throw data_error(t.name(), t.line(i), "r_mm must increase strictly");
     }
     if (tr_.size() < 2) throw data_error(t.name(), 0, "a trim coil table needs at least 2 rows");
+  }
+  if (kind_ == 3) {
     // Monotone-preserving (Fritsch-Carlson) slopes: no overshoot between measured points.
     const size_t n = tr_.size();
     std::vector<double> d(n - 1);
@@ -78,11 +88,13 @@ TrimCoilField::TrimCoilField(const TrimCoil& coil, int symmetry) : coil_(coil), 
     tm_[0] = d[0];
     tm_[n - 1] = d[n - 2];
     for (size_t i = 1; i + 1 < n; ++i) tm_[i] = d[i - 1] * d[i] <= 0 ? 0 : 2 / (1 / d[i - 1] + 1 / d[i]);
+    if (coil.table.empty() && coil.table_slope.size() == n)  // exact slopes given (e.g. a B-spline)
+      for (size_t i = 0; i < n; ++i) tm_[i] = coil.table_slope[i] * 1e3;
   }
   if (kind_ == 0 || kind_ == 1) {
     centre_m_ = 0.5 * (coil.rmin_mm + coil.rmax_mm) * 1e-3;
-    num_c_ = shifted(coil.coefnum, centre_m_);
-    den_c_ = shifted(coil.coefdenom, centre_m_);
+    num_c_ = shifted(coil.coefnum, centre_m_ - coil.coef_origin_mm * 1e-3);
+    den_c_ = shifted(coil.coefdenom, centre_m_ - coil.coef_origin_mm * 1e-3);
   }
   everywhere_ = coil.sectors.empty() && coil.phimin_deg == 0 && coil.phimax_deg >= 360;
   for (int s : coil.sectors)
@@ -195,6 +207,36 @@ void TrimCoilField::shape_exact(double r_m, double& s, double& ds) const {
     s = -dq;
     ds = -d2q;
   }
+}
+
+TrimCoil bfield_from_phase(const TrimCoil& phase) {
+  if (phase.type != "psi-phase")
+    throw Error(ExitCode::usage, "trim coil '" + phase.name + "': bfield_from_phase needs a psi-phase coil");
+  // OPAL's PSI-PHASE field is -bmax (f/g)' = bmax (f g' - f' g) / g^2 (quotient rule), a rational
+  // again (paper Sec. IV.C); products in long double, in the coil's own origin (no re-expansion).
+  auto der = [](const std::vector<long double>& p) {
+    std::vector<long double> d(p.size() > 1 ? p.size() - 1 : 1, 0.0L);
+    for (size_t k = 1; k < p.size(); ++k) d[k - 1] = static_cast<long double>(k) * p[k];
+    return d;
+  };
+  auto mul = [](const std::vector<long double>& p, const std::vector<long double>& q) {
+    std::vector<long double> r(p.size() + q.size() - 1, 0.0L);
+    for (size_t i = 0; i < p.size(); ++i)
+      for (size_t j = 0; j < q.size(); ++j) r[i + j] += p[i] * q[j];
+    return r;
+  };
+  const std::vector<long double> f(phase.coefnum.begin(), phase.coefnum.end());
+  std::vector<long double> g(phase.coefdenom.begin(), phase.coefdenom.end());
+  if (g.empty()) g = {1.0L};
+  std::vector<long double> num = mul(f, der(g)), minus = mul(der(f), g);
+  if (minus.size() > num.size()) num.resize(minus.size(), 0.0L);
+  for (size_t k = 0; k < minus.size(); ++k) num[k] -= minus[k];
+  const std::vector<long double> den = mul(g, g);
+  TrimCoil b = phase;
+  b.type = "psi-bfield";
+  b.coefnum.assign(num.begin(), num.end());
+  b.coefdenom.assign(den.begin(), den.end());
+  return b;
 }
 
 bool TrimCoilField::in_azimuth(double th, double sector_offset) const {

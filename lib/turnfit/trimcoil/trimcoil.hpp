@@ -67,6 +67,10 @@ class TrimCoilField {
   std::vector<Segment> lut_;  // sorted, disjoint; outside them the formula applies
 };
 
+/// The PSI-BFIELD description of a PSI-PHASE coil: the same field, B = bmax (f g' - f' g) / g^2
+/// (numerator degree n + m - 1, denominator 2m), in the coil's coefficient origin.
+TrimCoil bfield_from_phase(const TrimCoil& phase);
+
 /// Value, first and second derivative of the rational function f(x)/g(x) with polynomial
 /// coefficients num (a_0 + a_1 x + ...) and den (b_0 + ...; empty: g = 1).
 void rational(const std::vector<double>& num, const std::vector<double>& den, double x, double& q,
