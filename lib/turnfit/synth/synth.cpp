@@ -135,7 +135,9 @@ PhaseScan phase_scan_on(const Machine& m, const TrackModel& base, size_t coil, c
   out.excitation_T = pm.excitation_T;
   std::vector<double> r1, p1;
   TrackModel exc = base;
-  TrimCoil excited = tc;
+  // The coil as the model built it: effects (trimcoil-sectors) may have changed its sectors, and
+  // the excitation must act where the coil does.
+  TrimCoil excited = base.coils.at(coil).coil();
   excited.bmax_T += pm.excitation_T;
   exc.coils[coil] = TrimCoilField(excited, base.map.grid().symmetry);
   // The same lookup table as make_track_model builds (unless the model keeps the formula).
