@@ -5,11 +5,20 @@
 // and compares SciPy's least_squares on the same points (bench/RESULTS.md).
 //
 //   bench_tcfit [--machine machine.json] [--phase DIR] [--min-time S] [--detail]
+//               [--seed "COIL,N,M,A,B" ...]
 //
-// --detail appends r_lo,r_hi,iterations,a,b (coefficients in x = (r - centre)/half_width,
-// space separated) for the comparison script. A coil fit_rational refuses (EX_DATAERR) gets a
-// row with rss nan and start "refused: <message>"; if it was refused for having fewer points
-// than parameters (TC18 at 4/5), a second row fits it at 2/4 (start "fallback 2/4: ...").
+// fit_rational is called with its default model (RationalModel::value: the paper's fit of the
+// phase shift itself, Eq. 2). --detail appends r_lo,r_hi,iterations,reps,a,b (coefficients in
+// x = (r - centre)/half_width, space separated) for the comparison script. A coil fit_rational
+// refuses (EX_DATAERR: too few points, or an optimum that wants a pole within half a data
+// spacing of the window) gets a row with rss nan, the median time to the refusal, and start
+// "refused: <message>"; if it was refused for having fewer points than parameters (TC18 at 4/5),
+// a second row fits it at 2/4 (start "fallback 2/4: ..." or "refused: ...").
+//
+// --seed (repeatable) fits only the coils named, at degrees N/M, giving fit_rational one more
+// start: numerator A and denominator B (space-separated coefficients in x, in data units, B
+// starting with 1), e.g. another tool's optimum: does turnfit reach it, and keep it? The row's
+// start reads "seeded: <winning start>" (the seed is "lower degree") or "refused: ...".
 #include <algorithm>
 #include <chrono>
 #include <cmath>
@@ -55,21 +64,31 @@ std::string csv_quote(const std::string& s) {
 
 struct Timed {
   RationalFit fit;
+  std::string refused;  // fit_rational's message if it refused the coil (EX_DATAERR)
   double median_ms = 0;
   size_t reps = 0;
 };
 
-/// Times fit_rational until min_time seconds have passed (at least 3 runs); median per fit.
-Timed time_fit(const Scan& s, int n, int m, double min_time) {
+/// Times fit_rational until min_time seconds have passed (at least 3 runs); median per call. A
+/// refusal (EX_DATAERR) is timed as well: the time the library takes to give that answer.
+Timed time_fit(const Scan& s, int n, int m, double min_time, const std::vector<RationalFit>& starts = {}) {
   Timed t;
   std::vector<double> ms;
   const auto t0 = Clock::now();
   do {
     const auto a = Clock::now();
-    RationalFit f = fit_rational(s.r, s.y, s.lo, s.hi, n, m);
+    RationalFit f;
+    std::string why;
+    try {
+      f = fit_rational(s.r, s.y, s.lo, s.hi, n, m, starts, 400, RationalModel::value);
+    } catch (const Error& e) {
+      if (e.code() != ExitCode::data) throw;
+      why = e.what();
+    }
     ms.push_back(std::chrono::duration<double, std::milli>(Clock::now() - a).count());
-    if (ms.size() == 1) t.fit = f;
-    else if (f.rss != t.fit.rss) throw Error(ExitCode::software, s.name + ": fit_rational is not deterministic");
+    if (ms.size() == 1) t.fit = f, t.refused = why;
+    else if (why != t.refused || f.rss != t.fit.rss)
+      throw Error(ExitCode::software, s.name + ": fit_rational is not deterministic");
   } while (ms.size() < 3 || std::chrono::duration<double>(Clock::now() - t0).count() < min_time);
   std::sort(ms.begin(), ms.end());
   const size_t k = ms.size();
@@ -86,14 +105,17 @@ int main(int argc, char** argv) {
   std::string phase = share + "/ring8/measured/phase";
   double min_time = 0.2;
   bool detail = false;
+  std::vector<std::string> seeds;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
     if (a == "--machine" && i + 1 < argc) machine = argv[++i];
     else if (a == "--phase" && i + 1 < argc) phase = argv[++i];
     else if (a == "--min-time" && i + 1 < argc) min_time = std::atof(argv[++i]);
     else if (a == "--detail") detail = true;
+    else if (a == "--seed" && i + 1 < argc) seeds.push_back(argv[++i]);
     else {
-      std::fprintf(stderr, "usage: bench_tcfit [--machine machine.json] [--phase DIR] [--min-time S] [--detail]\n");
+      std::fprintf(stderr, "usage: bench_tcfit [--machine machine.json] [--phase DIR] [--min-time S] [--detail] "
+                           "[--seed \"COIL,N,M,A,B\" ...]\n");
       return 64;
     }
   }
@@ -120,8 +142,8 @@ int main(int argc, char** argv) {
     std::printf("# bench_tcfit: %s, scans %s, min time %.3g s per coil, median time per fit_rational call\n",
                 machine.c_str(), phase.c_str(), min_time);
     std::printf("coil,n,m,points,rss,rms,time_ms,start%s\n", detail ? ",r_lo,r_hi,iterations,reps,a,b" : "");
-    size_t fits = 0, points = 0;
-    double rss = 0, ms = 0;
+    size_t fits = 0, points = 0, refusals = 0;
+    double rss = 0, ms = 0, ms_refused = 0;
     auto row = [&](const std::string& name, const Timed& t, const std::string& start, double lo, double hi) {
       const RationalFit& f = t.fit;
       std::printf("%s,%d,%d,%zu,%.17g,%.17g,%.6g,%s", name.c_str(), f.n, f.m, f.points, f.rss, f.rms, t.median_ms,
@@ -133,32 +155,67 @@ int main(int argc, char** argv) {
       rss += f.rss;
       ms += t.median_ms;
     };
-    auto refused = [&](const Scan& s, int n, int m, size_t in_window, const Error& e) {
-      std::printf("%s,%d,%d,%zu,nan,nan,nan,%s", s.name.c_str(), n, m, in_window,
-                  csv_quote(std::string("refused: ") + e.what()).c_str());
-      if (detail) std::printf(",%.17g,%.17g,,,,", s.lo, s.hi);
+    auto refused = [&](const Scan& s, int n, int m, size_t in_window, const Timed& t) {
+      std::printf("%s,%d,%d,%zu,nan,nan,%.6g,%s", s.name.c_str(), n, m, in_window, t.median_ms,
+                  csv_quote("refused: " + t.refused).c_str());
+      if (detail) std::printf(",%.17g,%.17g,,%zu,,", s.lo, s.hi, t.reps);
       std::printf("\n");
+      ++refusals;
+      ms_refused += t.median_ms;
     };
-    for (const Scan& s : scans) {
+    auto numbers = [](const std::string& text) {
+      std::vector<double> v;
+      const char* p = text.c_str();
+      char* end = nullptr;
+      for (double d = std::strtod(p, &end); end != p; d = std::strtod(p, &end)) v.push_back(d), p = end;
+      return v;
+    };
+    for (const std::string& seed : seeds) {  // seeded fits only
+      std::vector<std::string> f;
+      for (size_t b = 0, e; b <= seed.size(); b = e + 1) {
+        e = seed.find(',', b);
+        if (e == std::string::npos) e = seed.size();
+        f.push_back(seed.substr(b, e - b));
+      }
+      const auto it = std::find_if(scans.begin(), scans.end(), [&](const Scan& s) { return !f.empty() && s.name == f[0]; });
+      if (f.size() != 5 || it == scans.end()) throw Error(ExitCode::usage, "--seed " + seed + ": want COIL,N,M,A,B of a coil");
+      const Scan& s = *it;
+      RationalFit start;
+      start.n = std::atoi(f[1].c_str());
+      start.m = std::atoi(f[2].c_str());
+      start.centre = 0.5 * (s.lo + s.hi);
+      start.half_width = 0.5 * (s.hi - s.lo);
+      start.a = numbers(f[3]);
+      start.b = numbers(f[4]);
+      if (static_cast<int>(start.a.size()) != start.n + 1 || static_cast<int>(start.b.size()) != start.m + 1)
+        throw Error(ExitCode::usage, "--seed " + seed + ": want N + 1 numerator and M + 1 denominator coefficients");
       size_t in_window = 0;
       for (double r : s.r) in_window += r >= s.lo && r <= s.hi;
-      try {
-        const Timed t = time_fit(s, s.n, s.m, min_time);
-        row(s.name, t, t.fit.start, s.lo, s.hi);
-      } catch (const Error& e) {
-        if (e.code() != ExitCode::data) throw;
-        refused(s, s.n, s.m, in_window, e);
-        if (in_window >= static_cast<size_t>(s.n + 1 + s.m)) continue;  // refused for another reason
-        try {  // too few points for the paper's degrees: the 2/4 of the other coils
-          const Timed t = time_fit(s, 2, 4, min_time);
-          row(s.name, t, "fallback 2/4: " + t.fit.start, s.lo, s.hi);
-        } catch (const Error& e2) {
-          if (e2.code() != ExitCode::data) throw;
-          refused(s, 2, 4, in_window, e2);
-        }
-      }
+      const Timed t = time_fit(s, start.n, start.m, min_time, {start});
+      if (t.refused.empty()) row(s.name, t, "seeded: " + t.fit.start, s.lo, s.hi);
+      else refused(s, start.n, start.m, in_window, t);
     }
-    std::printf("total,,,%zu,%.17g,,%.6g,%zu fits%s\n", points, rss, ms, fits, detail ? ",,,,,," : "");
+    for (const Scan& s : scans) {
+      if (!seeds.empty()) break;
+      size_t in_window = 0;
+      for (double r : s.r) in_window += r >= s.lo && r <= s.hi;
+      const Timed t = time_fit(s, s.n, s.m, min_time);
+      if (t.refused.empty()) {
+        row(s.name, t, t.fit.start, s.lo, s.hi);
+        continue;
+      }
+      refused(s, s.n, s.m, in_window, t);
+      if (in_window >= static_cast<size_t>(s.n + 1 + s.m)) continue;  // refused for another reason
+      // too few points for the paper's degrees: the 2/4 of the other coils
+      const Timed t2 = time_fit(s, 2, 4, min_time);
+      if (t2.refused.empty()) row(s.name, t2, "fallback 2/4: " + t2.fit.start, s.lo, s.hi);
+      else refused(s, 2, 4, in_window, t2);
+    }
+    std::printf("total,,,%zu,%.17g,,%.6g,%zu fits (%zu refusals: %.6g ms more)%s\n", points, rss, ms, fits, refusals,
+                ms_refused, detail ? ",,,,,," : "");
+  } catch (const Error& e) {
+    std::fprintf(stderr, "bench_tcfit: %s\n", e.what());
+    return static_cast<int>(e.code());
   } catch (const std::exception& e) {
     std::fprintf(stderr, "bench_tcfit: %s\n", e.what());
     return 65;

@@ -13,22 +13,34 @@ scaled variable x = (r - centre)/half_width, g = 1 + b_1 x + ... (b_0 = 1), two 
       Jacobian, tolerances 1e-15, max_nfev 4000, methods 'lm' and 'trf' each from two starts:
       the polynomial one of (a) and the linearized (Levy) fit reweighted by 1/g
       (Sanathanan-Koerner) as turnfit computes it ("lin": the best of 8 passes, stopping at the
-      first g with a root on [-1, 1]); where that stops at the first pass (turnfit then has no
+      first g turnfit would not accept: g <= 1e-9 on [-1, 1] or a root within half a data
+      spacing of it, see below); where that stops at the first pass (turnfit then has no
       linearized start) the best of 8 unconstrained passes ("lin*": scipy does not mind a pole
       in its start). The lowest rss of the 4 runs is kept (column "(b) run"), the time is that
       of all 4.
 
---multistart K adds, per coil, the best scipy optimum without a root of g on or within 1e-6 of
-the window over K seeded random starts ('lm', analytic Jacobian): a search for a root-free
-local optimum below turnfit's.
-
 Each fit (start included) is repeated until --min-time seconds have passed; the median per fit is
-reported. Every result's denominator is classified (columns "g"): POLE, a real root on [-1, 1]
-(an infinity inside the coil's window: unusable as a field; scipy has no way to forbid it);
-edge, the nearest root within 1e-6 (in x) outside the window (turnfit refuses steps with
-g <= 1e-9 on the window, and an optimum that wants a pole ends pressed against that bound: the
-fitted curve and its slope, the field, spike at the window's edge); "-" otherwise. A coil with
-fewer points than parameters (TC18 at 4/5) is reported as refused by both tools and compared at
+reported (for a coil turnfit refuses, the time to the refusal). Every denominator g is judged
+the way turnfit's fit_rational judges its own since the commit "tc-fit: three models ...": the
+distance, in the complex plane and in x, from g's nearest root (complex roots too) to [-1, 1],
+against half the median spacing of the window's samples (in x; 12.5 mm for ring8's 25 mm
+steps). Nearer, f/g has a feature the samples cannot resolve (a spike in the fitted curve and
+far more in its slope, the field); fit_rational keeps its trial steps out of that zone and
+refuses a fit whose optimum is held at its boundary (distance < 1.02 half spacings). Columns
+"g": ROOT, a real root of g on [-1, 1] (the plain check: f/g infinite between two samples,
+which least_squares has no way to forbid); near, no real root on the window but a root within
+half a spacing of it; "-", pole-free by that measure. Column "pole mm": that distance times the
+half width, in mm (0 for ROOT).
+
+--multistart K adds, per coil, the best scipy optimum over K seeded random starts ('lm',
+analytic Jacobian) whose g is pole-free by the same measure: a search for a resolvable optimum
+below turnfit's (or one on a coil turnfit refuses). SciPy's pole-free result for a coil is the
+lowest rss of (a), (b) and that search among those that are pole-free; the summary counts the
+coils where turnfit's result (pole-free by construction) is <= it. Where the search finds a
+pole-free optimum on a coil turnfit refuses, or below turnfit's, bench_tcfit is run again with
+it as an extra start (--seed): does turnfit keep it, or still refuse?
+
+A coil with fewer points than parameters (TC18 at 4/5) is refused by both tools and compared at
 2/4 instead (marked *).
 
 Usage: bench/bench_tcfit_scipy.py [--bin build/bench/bench_tcfit] [--machine machine.json]
@@ -57,6 +69,7 @@ REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SHARE = os.path.join(REPO, "share", "turnfit", "ring8")
 REL_TIE = 1e-9
 GUARD = np.linspace(-1.0, 1.0, 2001)
+SOURCE = {"a": "(a)", "b": "(b)", "ms": "multistart"}
 
 
 def read_scan(path):
@@ -70,8 +83,10 @@ def read_scan(path):
     return np.array(r), np.array(y)
 
 
-def run_bench(binary, machine, phase, min_time):
+def run_bench(binary, machine, phase, min_time, seeds=()):
     cmd = [binary, "--detail", "--min-time", str(min_time)]
+    for sd in seeds:
+        cmd += ["--seed", sd]
     if machine:
         cmd += ["--machine", machine]
     if phase:
@@ -135,10 +150,11 @@ def polynomial_start(x, y, n, m):
     return np.concatenate((a, np.zeros(m)))
 
 
-def linearized_start(x, y, n, m, feasible_only=True):
+def linearized_start(x, y, n, m, feasible_only=True, half_spacing=0.0):
     """Levy's linearized fit f - y g = 0, reweighted by 1/g (Sanathanan-Koerner), 8 passes: the
     pass with the least true rss. With feasible_only (turnfit's start) the passes stop at the
-    first g with a root on [-1, 1] (None if the first has one); without, any finite pass counts."""
+    first g that turnfit would not accept (g <= 1e-9 somewhere on [-1, 1], or a root within
+    half_spacing of it; None if the first pass has one); without, any finite pass counts."""
     A = np.hstack((vander(x, n), -y[:, None] * vander(x, m)[:, 1:]))
     w = np.ones(len(x))
     best, best_cost = None, np.inf
@@ -147,7 +163,7 @@ def linearized_start(x, y, n, m, feasible_only=True):
         if not np.all(np.isfinite(t)):
             break
         b = np.concatenate(([1.0], t[n + 1:]))
-        if feasible_only and m > 0 and den_min(b) <= 1e-9:
+        if feasible_only and m > 0 and (den_min(b) <= 1e-9 or not nearest_root(b)[0] > half_spacing):
             break
         g = vander(x, m) @ b
         cost = np.sum((vander(x, n) @ t[: n + 1] / g - y) ** 2)
@@ -165,12 +181,12 @@ def fit_paper(x, y, n, m):
     return s.x, s.nfev, s.status, "lm"
 
 
-def fit_best(x, y, n, m):
+def fit_best(x, y, n, m, half_spacing):
     scale = np.max(np.abs(y)) or 1.0
     ys = y / scale
     fun, jac = make_problem(x, ys, n, m)
     starts = []
-    lin = linearized_start(x, ys, n, m)
+    lin = linearized_start(x, ys, n, m, half_spacing=half_spacing)
     if lin is not None:
         starts.append(("lin", lin))
     else:  # turnfit has no linearized start here; scipy does not mind a pole in its start
@@ -209,13 +225,14 @@ def timed(fn, min_time):
     return out, 1e3 * float(np.median(ts))
 
 
-def multistart(x, y, n, m, k, seed=1):
-    """Best rss (data units) over k random starts of 'lm' (analytic Jacobian) whose optimum's g
-    has no root on or within 1e-6 of [-1, 1], and how many such optima there were."""
+def multistart(x, y, n, m, k, half_spacing, seed=1):
+    """Best (rss in data units, theta) over k random starts of 'lm' (analytic Jacobian) whose
+    optimum's g is pole-free by root_class (no root within half_spacing of [-1, 1]), and how
+    many such optima there were."""
     scale = np.max(np.abs(y)) or 1.0
     fun, jac = make_problem(x, y / scale, n, m)
     rng = np.random.default_rng(seed)
-    best, count = None, 0
+    best, best_theta, count = None, None, 0
     for _ in range(k):
         t0 = np.concatenate((rng.normal(0, 1, n + 1), rng.normal(0, 1, m) * rng.choice([0.1, 0.5, 1, 2])))
         with warnings.catch_warnings():
@@ -224,30 +241,38 @@ def multistart(x, y, n, m, k, seed=1):
                 s = least_squares(fun, t0, jac=jac, method="lm", ftol=1e-15, xtol=1e-15, gtol=1e-15, max_nfev=2000)
             except Exception:
                 continue
-        if not np.isfinite(s.cost) or root_class(np.concatenate(([1.0], s.x[n + 1:])))[0] != "-":
+        if not np.isfinite(s.cost) or root_class(np.concatenate(([1.0], s.x[n + 1:])), half_spacing)[0] != "-":
             continue
         count += 1
         rss = 2 * s.cost * scale * scale
         if best is None or rss < best:
-            best = rss
-    return best, count
+            th = s.x.copy()
+            th[: n + 1] *= scale
+            best, best_theta = rss, th
+    return best, best_theta, count
 
 
-def root_class(b):
-    """'POLE': g has a real root on [-1, 1]; 'edge': its nearest root lies within 1e-6 (in x) of
-    the window, where turnfit's constraint g >= 1e-9 holds an optimum that wants a pole (the
-    fitted curve, and far more its slope, the field, spike at the window's edge); '-' otherwise.
-    Also the distance (in x, complex roots too) from the nearest root to [-1, 1]."""
+def nearest_root(b):
+    """Distance (in x, complex plane) from the nearest root of g = b_0 + b_1 x + ... to [-1, 1],
+    as fit_rational's pole_distance; the nearest root itself (None if g is constant)."""
     b = np.asarray(b, dtype=float)
     while len(b) > 1 and b[-1] == 0:
         b = b[:-1]
     if len(b) <= 1:
-        return "-", np.inf
+        return np.inf, None
     roots = np.roots(b[::-1])
-    dist = float(np.min(np.abs(roots - np.clip(roots.real, -1, 1))))
+    d = np.hypot(np.maximum(np.abs(roots.real) - 1, 0), np.abs(roots.imag))
+    k = int(np.argmin(d))
+    return float(d[k]), roots[k]
+
+
+def root_class(b, half_spacing):
+    """'ROOT': g has a real root on [-1, 1]; 'near': none, but a root (complex ones too) lies
+    within half_spacing (in x) of the window; '-' otherwise. Also the distance (0 for ROOT)."""
     if has_pole(b):
-        return "POLE", 0.0
-    return ("edge" if dist < 1e-6 else "-"), dist
+        return "ROOT", 0.0
+    dist, _ = nearest_root(b)
+    return ("near" if dist < half_spacing else "-"), dist
 
 
 def edge_values(a, b):
@@ -259,6 +284,14 @@ def edge_values(a, b):
     return np.max(np.abs(q)), np.max(np.abs(dq)), np.max(np.abs(dq[np.abs(X) <= 0.9]))
 
 
+def short_refusal(msg):
+    if "wants a pole" in msg:
+        return "refused: pole"
+    if "points in the window for" in msg:
+        return "refused: points"
+    return "refused"
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--bin", default="build/bench/bench_tcfit", help="bench_tcfit binary")
@@ -266,7 +299,7 @@ def main():
     ap.add_argument("--phase", default=os.path.join(SHARE, "measured", "phase"))
     ap.add_argument("--min-time", type=float, default=0.2, help="seconds of repeats per coil and tool")
     ap.add_argument("--multistart", type=int, default=0, metavar="K",
-                    help="also search K random starts per coil for a root-free optimum below turnfit's")
+                    help="also search K random starts per coil for a pole-free optimum (below turnfit's)")
     ap.add_argument("--markdown", action="store_true", help="print the table as Markdown")
     o = ap.parse_args()
     binary = o.bin
@@ -283,7 +316,7 @@ def main():
     for row in rows:
         if row["coil"] != "total":
             coils.setdefault(row["coil"], []).append(row)
-    table, notes = [], []
+    table, notes, seeds = [], [], []
     for coil, crows in coils.items():
         first, row = crows[0], crows[-1]
         n, m = int(row["n"]), int(row["m"])
@@ -293,6 +326,7 @@ def main():
         sel = (r >= lo) & (r <= hi)
         centre, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
         x, yw = (r[sel] - centre) / half, y[sel]
+        hs = 0.5 * float(np.median(np.diff(x))) if len(x) > 1 else 0.0  # fit_rational's min_pole
         if len(x) != int(row["points"]):
             sys.exit("%s: %d points in the window here, %s in bench_tcfit" % (coil, len(x), row["points"]))
         if len(crows) > 1:  # refused at the paper's degrees for too few points, fitted at 2/4
@@ -306,42 +340,69 @@ def main():
             notes.append("%s at %d/%d: %d points for %d parameters; turnfit %s; %s. Compared at %d/%d (marked *)."
                          % (coil, fn_, fm_, len(x), fn_ + 1 + fm_, first["start"], smsg, n, m))
             label = coil + "*"
-        res = {"coil": label, "n": n, "m": m, "points": len(x), "tf_rss": None, "tf_ms": None, "tf_g": "refused"}
+        res = {"coil": label, "n": n, "m": m, "points": len(x), "half": half, "hs_mm": hs * half, "tf_rss": None,
+               "tf_ms": float(row["time_ms"]), "tf_state": "fitted", "tf_dist": None}
         if not row["start"].startswith("refused"):
             tf_theta = np.array([float(v) for v in row["a"].split()] + [float(v) for v in row["b"].split()[1:]])
-            tf_a, tf_b = tf_theta[: n + 1], np.concatenate(([1.0], tf_theta[n + 1:]))
-            res["tf_rss"], res["tf_ms"] = float(row["rss"]), float(row["time_ms"])
-            res["tf_g"], dist = root_class(tf_b)
+            tf_b = np.concatenate(([1.0], tf_theta[n + 1:]))
+            res["tf_rss"] = float(row["rss"])
+            cls, dist = root_class(tf_b, hs)
+            res["tf_dist"] = dist
             here = rss_of(tf_theta, x, yw, n, m)
             if abs(here - res["tf_rss"]) > 1e-6 * res["tf_rss"]:
                 notes.append("%s: turnfit's coefficients give rss %.6e here, it reported %.6e" % (coil, here, res["tf_rss"]))
-            if res["tf_g"] != "-":
-                qmax, dqmax, dqin = edge_values(tf_a, tf_b)
-                notes.append("%s turnfit: g's nearest root %.1e (in x) outside the window, min g on [-1, 1] %.2e: "
-                             "max |f/g| %.3g, max |d(f/g)/dx| %.3g on the window (%.3g on |x| <= 0.9); a = [%s], b = [%s]"
-                             % (label, dist, den_min(tf_b), qmax, dqmax, dqin, row["a"].replace(" ", ", "),
-                                row["b"].replace(" ", ", ")))
+            if cls != "-" or dist < 1.02 * hs:
+                notes.append("%s turnfit: its g has a root %.3g mm from the window (half spacing %.3g mm): the library "
+                             "should have refused this fit" % (label, dist * half, hs * half))
         else:
-            notes.append("%s at %d/%d: turnfit %s" % (coil, n, m, row["start"]))
-        for key, fn in (("a", fit_paper), ("b", fit_best)):
-            (th, nfev, status, method), ms = timed(lambda: fn(x, yw, n, m), o.min_time)
+            res["tf_state"] = short_refusal(row["start"])
+            notes.append("%s at %d/%d: turnfit %s" % (label, n, m, row["start"]))
+        cands = []  # scipy's pole-free results: (rss, source, dist)
+        for key, fn in (("a", lambda: fit_paper(x, yw, n, m)), ("b", lambda: fit_best(x, yw, n, m, hs))):
+            (th, nfev, status, method), ms = timed(fn, o.min_time)
             b = np.concatenate(([1.0], th[n + 1:]))
             res[key + "_rss"] = rss_of(th, x, yw, n, m)
-            res[key + "_g"], dist = root_class(b)
+            res[key + "_g"], dist = root_class(b, hs)
+            res[key + "_dist"] = dist
             res[key + "_ms"] = ms
             res[key + "_method"] = method
-            if res[key + "_g"] == "POLE":
+            if res[key + "_g"] == "-":
+                cands.append((res[key + "_rss"], key, dist))
+            if res[key + "_g"] == "ROOT":
                 rts = np.roots(b[::-1])
                 rts = np.sort(rts[np.abs(rts.imag) <= 1e-7 * np.maximum(1.0, np.abs(rts))].real)
                 rts = rts[(rts >= -1) & (rts <= 1)]
-                notes.append("%s scipy (%s): g has a root on the window at x = %s (r = %s mm)" % (
+                notes.append("%s scipy (%s): g has a real root on the window at x = %s (r = %s mm)" % (
                     label, key, ", ".join("%.4f" % v for v in rts), ", ".join("%.1f" % (centre + half * v) for v in rts)))
+            elif res[key + "_g"] == "near":
+                _, z = nearest_root(b)
+                notes.append("%s scipy (%s): g's nearest root x = %.4f%+.4fi (r = %.1f%+.1fi mm), %.2f mm from the window "
+                             "(half spacing %.1f mm)" % (label, key, z.real, z.imag, centre + half * z.real, half * z.imag,
+                                                          dist * half, hs * half))
             if res["tf_rss"] is not None and res[key + "_rss"] < res["tf_rss"] * (1 - REL_TIE):
                 notes.append("%s scipy (%s): rss %.10e < turnfit's %.10e (%s, g %s, min g on [-1, 1] %.3g); a = [%s], b = [1, %s]" % (
                     label, key, res[key + "_rss"], res["tf_rss"], method, res[key + "_g"], den_min(b),
                     ", ".join("%.10g" % v for v in th[: n + 1]), ", ".join("%.10g" % v for v in th[n + 1:])))
         if o.multistart > 0:
-            res["ms"] = multistart(x, yw, n, m, o.multistart)
+            best, th, count = multistart(x, yw, n, m, o.multistart, hs)
+            res["ms"] = (best, count)
+            if best is not None:
+                b = np.concatenate(([1.0], th[n + 1:]))
+                if res["tf_rss"] is None or best < res["tf_rss"] * (1 - REL_TIE):
+                    seeds.append((label, "%s,%d,%d,%s,%s" % (coil, n, m, " ".join("%.17g" % v for v in th[: n + 1]),
+                                                             " ".join("%.17g" % v for v in b))))
+                dist = nearest_root(b)[0]
+                cands.append((best, "ms", dist))
+                if res["tf_rss"] is None or best < res["tf_rss"] * (1 - REL_TIE):
+                    qmax, dqmax, dqin = edge_values(th[: n + 1], b)
+                    notes.append("%s multistart: pole-free optimum rss %.10e, nearest root %.1f mm from the window, "
+                                 "min g %.3g, max |f/g| %.3g, max |d(f/g)/dx| %.3g (%.3g on |x| <= 0.9); a = [%s], b = [1, %s]"
+                                 % (label, best, dist * half, den_min(b), qmax, dqmax, dqin,
+                                    ", ".join("%.10g" % v for v in th[: n + 1]), ", ".join("%.10g" % v for v in th[n + 1:])))
+        res["sp_free"] = None
+        if cands:  # the lowest; on a tie (rel. 1e-9) the first of (a), (b), multistart
+            low = min(c[0] for c in cands)
+            res["sp_free"] = next(c for c in cands if c[0] <= low * (1 + REL_TIE))
         table.append(res)
 
     def num(v, f):
@@ -353,14 +414,21 @@ def main():
     def tratio(u, v):
         return "-" if u is None or v is None else "%.2f" % (u / v)
 
-    hdr = ["coil", "n/m", "pts", "turnfit rss", "tf g", "scipy(a) rss", "(a)/tf", "(a) g", "scipy(b) rss", "(b)/tf",
-           "(b) g", "(b) run", "tf ms", "(a) ms", "(b) ms", "(a)/tf time", "(b)/tf time"]
+    def mm(t, key):
+        d = t[key + "_dist"]
+        return "-" if d is None else ("inf" if not np.isfinite(d) else "%.1f" % (d * t["half"]))
+
+    hdr = ["coil", "n/m", "pts", "turnfit", "turnfit rss", "tf pole mm", "scipy(a) rss", "(a)/tf", "(a) g", "(a) pole mm",
+           "scipy(b) rss", "(b)/tf", "(b) g", "(b) pole mm", "(b) run", "scipy pole-free rss", "from", "tf ms", "(a) ms",
+           "(b) ms", "(a)/tf time", "(b)/tf time"]
     body = []
     for t in table:
-        body.append([t["coil"], "%d/%d" % (t["n"], t["m"]), str(t["points"]), num(t["tf_rss"], "%.6e"), t["tf_g"],
-                     "%.6e" % t["a_rss"], ratio(t["a_rss"], t["tf_rss"]), t["a_g"],
-                     "%.6e" % t["b_rss"], ratio(t["b_rss"], t["tf_rss"]), t["b_g"], t["b_method"],
-                     num(t["tf_ms"], "%.2f"), "%.2f" % t["a_ms"], "%.2f" % t["b_ms"],
+        body.append([t["coil"], "%d/%d" % (t["n"], t["m"]), str(t["points"]), t["tf_state"], num(t["tf_rss"], "%.6e"),
+                     mm(t, "tf"), "%.6e" % t["a_rss"], ratio(t["a_rss"], t["tf_rss"]), t["a_g"], mm(t, "a"),
+                     "%.6e" % t["b_rss"], ratio(t["b_rss"], t["tf_rss"]), t["b_g"], mm(t, "b"), t["b_method"],
+                     "-" if t["sp_free"] is None else "%.6e" % t["sp_free"][0],
+                     "-" if t["sp_free"] is None else SOURCE[t["sp_free"][1]],
+                     "%.2f" % t["tf_ms"], "%.2f" % t["a_ms"], "%.2f" % t["b_ms"],
                      tratio(t["a_ms"], t["tf_ms"]), tratio(t["b_ms"], t["tf_ms"])])
     if o.markdown:
         print("| " + " | ".join(hdr) + " |")
@@ -373,30 +441,59 @@ def main():
         for b in body:
             print("  ".join(c.rjust(w[i]) for i, c in enumerate(b)))
     fitted = [t for t in table if t["tf_rss"] is not None]
-    refused = [t["coil"] for t in table if t["tf_rss"] is None]
-    tf_total = sum(t["tf_ms"] for t in fitted)
-    print("turnfit: %d coils fitted%s; g held at the window's edge (nearest root < 1e-6 outside) on %d: %s; "
-          "total time %.1f ms" % (len(fitted), (", refused " + ", ".join(refused)) if refused else "",
-                                  sum(t["tf_g"] != "-" for t in fitted),
-                                  ", ".join(t["coil"] for t in fitted if t["tf_g"] != "-") or "none", tf_total))
+    refused = [t for t in table if t["tf_rss"] is None]
+    tf_fit_ms = sum(t["tf_ms"] for t in fitted)
+    tf_all_ms = sum(t["tf_ms"] for t in table)
+    why = ", ".join("%s (%s)" % (t["coil"], t["tf_state"][len("refused: "):]) for t in refused) or "none"
+    dists = [t["tf_dist"] * t["half"] for t in fitted]
+    spacing = [t["hs_mm"] for t in table]
+    print("turnfit: %d of %d coils fitted, refused %s; nearest root of the fitted g's %s mm from the window "
+          "(half spacing %.1f-%.1f mm); time %.1f ms for the fits, %.1f ms with the refusals"
+          % (len(fitted), len(table), why, "%.1f-%.1f" % (min(dists), max(dists)) if dists else "-",
+             min(spacing), max(spacing), tf_fit_ms, tf_all_ms))
     for key, name in (("a", "scipy (a) paper-style lm"), ("b", "scipy (b) analytic Jacobian, best of 4 runs")):
         le = [t for t in fitted if t["tf_rss"] <= t[key + "_rss"] * (1 + REL_TIE)]
         lower = [t for t in fitted if t not in le]
-        clean = [t for t in fitted if t["tf_g"] == "-" and t[key + "_g"] == "-"]
-        tot = sum(t[key + "_ms"] for t in fitted)
-        print("summary %s: turnfit rss <= scipy's (rel. 1e-9) on %d of %d coils; scipy lower on %s%s; "
-              "g with a root on the window: %s; on the %d coils where neither g has a root on or within 1e-6 of the "
-              "window, turnfit <= scipy on %d (largest |rss ratio - 1| %.1e); time %.1f ms against turnfit's %.1f (x%.2f)"
-              % (name, len(le), len(fitted), ", ".join("%s (g %s)" % (t["coil"], t[key + "_g"]) for t in lower) or "none",
-                 "", ", ".join(t["coil"] for t in table if t[key + "_g"] == "POLE") or "none", len(clean),
-                 sum(t["tf_rss"] <= t[key + "_rss"] * (1 + REL_TIE) for t in clean),
-                 max([abs(t[key + "_rss"] / t["tf_rss"] - 1) for t in clean] or [0]), tot, tf_total, tot / tf_total))
+        clean = [t for t in fitted if t[key + "_g"] == "-"]
+        tot = sum(t[key + "_ms"] for t in table)
+        print("summary %s: real root of g on the window on %d coils (%s); root within half a spacing (ROOT or near) on %d "
+              "(%s); on turnfit's %d fitted coils turnfit rss <= scipy's (rel. 1e-9) on %d, scipy lower on %s; where "
+              "scipy's is pole-free too (%d) turnfit <= scipy on %d (largest |rss ratio - 1| %.1e); time %.1f ms for all "
+              "%d coils against turnfit's %.1f (x%.2f)"
+              % (name, sum(t[key + "_g"] == "ROOT" for t in table),
+                 ", ".join(t["coil"] for t in table if t[key + "_g"] == "ROOT") or "none",
+                 sum(t[key + "_g"] != "-" for t in table),
+                 ", ".join(t["coil"] for t in table if t[key + "_g"] != "-") or "none",
+                 len(fitted), len(le), ", ".join("%s (g %s)" % (t["coil"], t[key + "_g"]) for t in lower) or "none",
+                 len(clean), sum(t["tf_rss"] <= t[key + "_rss"] * (1 + REL_TIE) for t in clean),
+                 max([abs(t[key + "_rss"] / t["tf_rss"] - 1) for t in clean] or [0]), tot, len(table), tf_all_ms,
+                 tot / tf_all_ms))
+    both = [t for t in fitted if t["sp_free"] is not None]
+    le = [t for t in both if t["tf_rss"] <= t["sp_free"][0] * (1 + REL_TIE)]
+    print("summary pole-free: turnfit's result <= scipy's best pole-free result (of (a), (b)%s; rel. 1e-9) on %d of %d "
+          "coils (%d where both have one); scipy lower on %s; turnfit refused, scipy has a pole-free result: %s; "
+          "turnfit fitted, scipy none: %s; neither: %s"
+          % (" and the multistart" if o.multistart > 0 else "", len(le), len(table), len(both),
+             ", ".join("%s (x%.6f)" % (t["coil"], t["sp_free"][0] / t["tf_rss"]) for t in both if t not in le) or "none",
+             ", ".join("%s (%.6e, %s)" % (t["coil"], t["sp_free"][0], SOURCE[t["sp_free"][1]]) for t in refused
+                       if t["sp_free"] is not None) or "none",
+             ", ".join(t["coil"] for t in fitted if t["sp_free"] is None) or "none",
+             ", ".join(t["coil"] for t in refused if t["sp_free"] is None) or "none"))
     if o.multistart > 0:
         for t in table:
             best, k = t["ms"]
-            print("multistart %s %d/%d: %d of %d random starts end root-free; best rss %s%s" % (
+            print("multistart %s %d/%d: %d of %d random starts end pole-free; best rss %s%s" % (
                 t["coil"], t["n"], t["m"], k, o.multistart, num(best, "%.10e"),
                 "" if best is None or t["tf_rss"] is None else " = turnfit's x %.9f" % (best / t["tf_rss"])))
+    if seeds:
+        scmd, srows = run_bench(binary, o.machine, o.phase, o.min_time, [sd for _, sd in seeds])
+        for (label, _), row in zip(seeds, [r_ for r_ in srows if r_["coil"] != "total"]):
+            if row["start"].startswith("refused"):
+                print("seeded %s %s/%s: turnfit given scipy's pole-free optimum as a start still refuses (%s ms): %s"
+                      % (label, row["n"], row["m"], row["time_ms"], row["start"]))
+            else:
+                print("seeded %s %s/%s: turnfit given scipy's pole-free optimum as a start fits rss %.10e (start %s, "
+                      "%s ms)" % (label, row["n"], row["m"], float(row["rss"]), row["start"], row["time_ms"]))
     for s in notes:
         print("note: " + s)
 
