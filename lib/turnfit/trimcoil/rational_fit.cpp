@@ -4,6 +4,8 @@
 #include <ceres/ceres.h>
 
 #include <algorithm>
+#include <complex>
+#include <random>
 #include <cstdio>
 #include <cmath>
 #include <limits>
@@ -337,11 +339,6 @@ std::vector<double> padded(const RationalFit& f, int n, int m, double scale, dou
   return th;
 }
 
-std::string cli_fmt(double v) {
-  char buf[32];
-  std::snprintf(buf, sizeof buf, "%.2g", v);
-  return buf;
-}
 
 }  // namespace
 
@@ -504,7 +501,7 @@ std::vector<double> real_roots_in(const std::vector<double>& c, double lo, doubl
 
 RationalFit fit_rational(const std::vector<double>& r, const std::vector<double>& y, double r_lo, double r_hi,
                          int n, int m, const std::vector<RationalFit>& starts, int max_iterations, RationalModel model,
-                         const LinearResponse* response) {
+                         const LinearResponse* response, int extra_starts) {
   if (n < 0 || m < 0) throw Error(ExitCode::usage, "degrees must be non-negative");
   if (r.size() != y.size()) throw Error(ExitCode::software, "fit_rational: r and y differ in length");
   if (!(r_hi > r_lo)) throw Error(ExitCode::data, "the fit window is empty (rmax <= rmin)");
@@ -590,25 +587,92 @@ RationalFit fit_rational(const std::vector<double>& r, const std::vector<double>
     }
   }
   // The best converged trial whose denominator has no real root on the window (the guard grid
-  // cannot see a pair of roots closer than its spacing; the companion matrix can).
-  const Trial* win = nullptr;
+  // cannot see a pair of roots closer than its spacing; the companion matrix can) and is not
+  // held at the pole bound: a fit held there has a feature the samples cannot resolve.
+  const Model md_final(x, n, m, integral, Kp, xg);
   bool any_unconverged = false;
-  for (const Trial& t : finals) {
-    if (!std::isfinite(t.cost)) continue;
-    if (!t.converged) {
-      any_unconverged = true;
-      continue;
-    }
+  auto root_free = [&](const Trial& t) {
     std::vector<double> den(static_cast<size_t>(m + 1), 1.0);
     for (int k = 1; k <= m; ++k) den[static_cast<size_t>(k)] = t.theta[static_cast<size_t>(n + k)];
-    if (!real_roots_in(den, -1, 1).empty()) continue;
-    win = &t;
-    break;
+    return real_roots_in(den, -1, 1).empty();
+  };
+  auto at_bound = [&](const Trial& t) { return m > 0 && pole_distance(t.theta.data(), n, m) < 1.02 * min_pole; };
+  double bound_cost = std::numeric_limits<double>::infinity();
+  auto pick = [&](const std::vector<Trial>& ts) -> const Trial* {
+    const Trial* best = nullptr;
+    for (const Trial& t : ts) {
+      if (!std::isfinite(t.cost)) continue;
+      if (!t.converged) {
+        any_unconverged = true;
+        continue;
+      }
+      if (!root_free(t)) continue;
+      if (at_bound(t)) {
+        bound_cost = std::min(bound_cost, t.cost);
+        continue;
+      }
+      if (!best || t.cost < best->cost) best = &t;
+    }
+    return best;
+  };
+  const Trial* win = pick(finals);
+  std::vector<Trial> extra;
+  if (!win && m > 0) {
+    // Every start ended at the bound (or failed): the least-squares surface may still hold a
+    // resolvable local optimum in another basin. Deterministic extra starts: denominators with
+    // roots placed away from the window (conjugate pairs, and one real root beyond an end for
+    // odd m), each with the numerator (and constant) the data give linearly for it.
+    std::mt19937_64 rng(20261123);
+    auto uni = [&](double lo, double hi) { return lo + (hi - lo) * static_cast<double>(rng() >> 11) * 0x1.0p-53; };
+    for (int k = 0; k < extra_starts; ++k) {
+      std::vector<std::complex<double>> roots;
+      for (int j = 0; j + 1 < m; j += 2) {
+        const std::complex<double> z(uni(-1.5, 1.5), uni(2 * min_pole, 1.0));
+        roots.push_back(z);
+        roots.push_back(std::conj(z));
+      }
+      if (m % 2) roots.push_back(uni(0, 1) < 0.5 ? -1 - 2 * min_pole - uni(0, 1) : 1 + 2 * min_pole + uni(0, 1));
+      std::vector<std::complex<double>> g{1.0};
+      for (const auto& z : roots) {  // g *= (x - z)
+        std::vector<std::complex<double>> h(g.size() + 1, 0.0);
+        for (size_t i = 0; i < g.size(); ++i) {
+          h[i + 1] += g[i];
+          h[i] -= z * g[i];
+        }
+        g = h;
+      }
+      std::vector<double> theta(static_cast<size_t>(md_final.params()), 0.0);
+      for (int j = 1; j <= m; ++j) theta[static_cast<size_t>(n + j)] = g[static_cast<size_t>(j)].real() / g[0].real();
+      // The linear part for this denominator: the model is linear in a (and c).
+      std::vector<double> pred(N), jac(N * static_cast<size_t>(p));
+      if (!md_final.predict(theta.data(), pred.data(), jac.data())) continue;
+      std::vector<int> cols;
+      for (int j = 0; j <= n; ++j) cols.push_back(j);
+      if (with_c) cols.push_back(p - 1);
+      Eigen::MatrixXd A(N, static_cast<Eigen::Index>(cols.size()));
+      Eigen::VectorXd rhs(N);
+      for (size_t i = 0; i < N; ++i) {
+        for (size_t j = 0; j < cols.size(); ++j)
+          A(static_cast<Eigen::Index>(i), static_cast<Eigen::Index>(j)) = jac[i * static_cast<size_t>(p) + static_cast<size_t>(cols[j])];
+        rhs(static_cast<Eigen::Index>(i)) = ys[i];
+      }
+      const Eigen::VectorXd t = A.colPivHouseholderQr().solve(rhs);
+      for (size_t j = 0; j < cols.size(); ++j) theta[static_cast<size_t>(cols[j])] = t(static_cast<Eigen::Index>(j));
+      extra.push_back(solve(md_final, ys, guard, min_pole, theta, "placed roots", max_iterations));
+    }
+    win = pick(extra);
   }
-  if (!win)
+  if (!win) {
+    if (std::isfinite(bound_cost))
+      throw Error(ExitCode::data, "degrees " + std::to_string(n) + "/" + std::to_string(m) +
+                                      ": the least-squares optimum wants a pole within half a data spacing of the "
+                                      "window (every start ended there): a feature the samples cannot resolve, a "
+                                      "spike in the field; use fewer degrees or --degrees auto");
     throw Error(ExitCode::data, any_unconverged ? "the fit did not converge in " + std::to_string(max_iterations) +
                                                       " iterations (fewer degrees, or more --max-iterations)"
                                                 : "no fit with a root-free denominator on the window");
+  }
+  if (bound_cost < win->cost) fit.rss_at_pole_bound = 2 * bound_cost * yscale * yscale;  // Ceres: cost = rss / 2
   const std::vector<double>& th = win->theta;
   fit.a.assign(static_cast<size_t>(n + 1), 0.0);
   fit.b.assign(static_cast<size_t>(m + 1), 1.0);
@@ -659,12 +723,6 @@ RationalFit fit_rational(const std::vector<double>& r, const std::vector<double>
   fit.min_denominator = 1;
   for (int i = 0; i <= 2000; ++i) fit.min_denominator = std::min(fit.min_denominator, horner(fit.b.data(), m, -1 + i / 1000.0));
   fit.pole_distance = m > 0 ? (pole_distance)(th.data(), n, m) : std::numeric_limits<double>::infinity();
-  if (m > 0 && fit.pole_distance < 1.02 * min_pole)
-    throw Error(ExitCode::data, "degrees " + std::to_string(n) + "/" + std::to_string(m) +
-                                    ": the least-squares optimum wants a pole within half a data spacing of the "
-                                    "window (held " + cli_fmt(fit.pole_distance * fit.half_width) +
-                                    " units of r from it): a feature the samples cannot resolve, a spike in the field; use "
-                                    "fewer degrees or --degrees auto");
   // Information criteria for Gaussian residuals (AICc: Hurvich and Tsai 1989).
   const double Nd = static_cast<double>(N), pd = p;
   const double ll = Nd * std::log(std::max(fit.rss, 1e-300) / Nd);

@@ -3,6 +3,7 @@
 #pragma once
 
 #include <Eigen/Dense>
+#include <limits>
 #include <string>
 #include <vector>
 
@@ -47,6 +48,8 @@ struct RationalFit {
   double condition = 0;         ///< 2-norm condition number of the Jacobian at the solution
   double min_denominator = 0;   ///< smallest g(x) on [-1, 1]
   double pole_distance = 0;     ///< distance (in x) from the nearest root of g to [-1, 1]
+  double rss_at_pole_bound = std::numeric_limits<double>::quiet_NaN();  ///< a lower rss held at the
+                                ///< pole bound, when the fit returned is a resolvable local optimum
   int iterations = 0;           ///< Levenberg-Marquardt iterations of the winning start
   std::string start;            ///< which start won: polynomial, linearized or lower degree
   std::vector<double> fitted_r;  ///< the data radii in the window
@@ -77,7 +80,10 @@ struct RationalFit {
 /// the polynomial least-squares fit (g = 1), the linearized fit f - y g = 0 reweighted by
 /// 1/g (Sanathanan-Koerner), the same degree's numerator over every lower denominator degree
 /// (a homotopy from the polynomial, so a higher m never fits worse), and any `starts` given
-/// (e.g. a lower-degree fit, padded with zeros). Each start runs Ceres' Levenberg-Marquardt
+/// (e.g. a lower-degree fit, padded with zeros); if every start ends held at the pole bound
+/// below, `extra_starts` more from denominators with roots placed away from the window (fixed seed) look
+/// for a resolvable local optimum, which is returned (rss_at_pole_bound then says what the
+/// unresolvable one reached). Each start runs Ceres' Levenberg-Marquardt
 /// with analytic derivatives; a trial step whose denominator touches zero anywhere on
 /// [r_lo, r_hi], or a root of g (complex ones too) within half the median data spacing of the
 /// window, is refused (Ceres treats it as an infinite cost and shrinks its region): the result
@@ -88,7 +94,8 @@ struct RationalFit {
 /// (the data ask for an unresolvable feature; the derivative of such a fit, the field, spikes).
 RationalFit fit_rational(const std::vector<double>& r, const std::vector<double>& y, double r_lo, double r_hi,
                          int n, int m, const std::vector<RationalFit>& starts = {}, int max_iterations = 400,
-                         RationalModel model = RationalModel::value, const LinearResponse* response = nullptr);
+                         RationalModel model = RationalModel::value, const LinearResponse* response = nullptr,
+                         int extra_starts = 64);
 
 /// Coefficients of p((r - centre) / half_width) as a polynomial in r (expanded in long double).
 std::vector<double> polynomial_in_r(const std::vector<double>& c_x, double centre, double half_width);

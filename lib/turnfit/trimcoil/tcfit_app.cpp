@@ -484,7 +484,9 @@ CoilFit fit_coil(const PhaseData& input, const TcFitOptions& o, const TrimCoil* 
           std::vector<RationalFit> starts;
           if (auto it = done.find({nn - 1, mm}); it != done.end()) starts.push_back(c.candidates[it->second]);
           try {
-            RationalFit f = fit_rational(data.r_mm, data.dsinphi, c.r_lo_mm, c.r_hi_mm, nn, mm, starts, o.max_iterations, model, response);
+            // Few extra starts per candidate: a candidate held at the pole bound is passed over.
+            RationalFit f = fit_rational(data.r_mm, data.dsinphi, c.r_lo_mm, c.r_hi_mm, nn, mm, starts, o.max_iterations,
+                                         model, response, 4);
             done[{nn, mm}] = c.candidates.size();
             c.candidates.push_back(std::move(f));
           } catch (const Error& e) {
@@ -668,6 +670,7 @@ nlohmann::json tcfit_report(const std::vector<CoilFit>& fits, const TcFitOptions
     j["condition"] = finite_or_null(f.condition);
     j["min_denominator"] = f.min_denominator;
     j["start"] = f.start;
+    if (std::isfinite(f.rss_at_pole_bound)) j["rss_at_pole_bound"] = f.rss_at_pole_bound;
     j["iterations"] = f.iterations;
     j["aicc"] = finite_or_null(f.aicc);
     j["bic"] = finite_or_null(f.bic);
