@@ -85,16 +85,21 @@ if command -v gnuplot > /dev/null 2>&1; then
 set terminal pngcairo size 1400,900 font ",10"
 set output "$OUT/tcfit-loop.png"
 set multiplot layout 2,4 title "ring8: trim coil phase scans (seed 88) fitted by turnfit-tc-fit, and the field shapes against the truth"
-do for [c in "TC3 TC8 TC13 TC16"] {
-  set title c." delta sin(phi)"; set xlabel "r [mm]"; set key bottom left
-  plot "$OUT/scan-".c.".dat" u 2:3 w p pt 7 ps 0.5 t "scan", \
-       "$OUT/paper-".c.".dat" u 2:3 w l lw 2 t "paper model fit"
+coils = "TC3 TC8 TC13 TC16"
+do for [i = 1:4] {
+  c = word(coils, i)
+  set title sprintf("%s delta sin(phi)", c); set xlabel "r [mm]"; set key bottom left
+  plot "$OUT/scan-".c.".dat" u 1:2 w p pt 7 ps 0.5 lc rgb "gray40" t "scan", \
+       "$OUT/paper-".c.".dat" u 2:3 w l lw 2 lc rgb "dark-green" t "paper model fit", \
+       "$OUT/tracked-".c.".dat" u 2:3 w l lw 2 lc rgb "blue" t "tracked model fit"
 }
-do for [c in "TC3 TC8 TC13 TC16"] {
-  set title c." field shape"; set xlabel "r [mm]"; set key top right
-  plot "$OUT/truth-".c.".dat" u 2:3 w l lw 3 lc rgb "black" t "truth", \
-       "$OUT/paper-".c.".dat" u 2:5 w l lw 2 t "paper model", \
-       "$OUT/tracked-".c.".dat" u 2:5:6 w yerrorlines pt 0 lw 1 t "tracked model (1 sigma)"
+do for [i = 1:4] {
+  c = word(coils, i)
+  set title sprintf("%s field shape", c); set xlabel "r [mm]"; set key top right
+  plot "$OUT/tracked-".c.".dat" u 2:(\$5-\$6):(\$5+\$6) w filledcurves fs transparent solid 0.25 lc rgb "blue" t "tracked 1 sigma", \
+       "$OUT/truth-".c.".dat" u 2:3 w l lw 3 lc rgb "black" t "truth", \
+       "$OUT/paper-".c.".dat" u 2:5 w l lw 2 lc rgb "dark-green" t "paper model", \
+       "$OUT/tracked-".c.".dat" u 2:5 w l lw 2 lc rgb "blue" t "tracked model"
 }
 unset multiplot
 EOF

@@ -495,8 +495,13 @@ CoilFit fit_coil(const PhaseData& input, const TcFitOptions& o, const TrimCoil* 
         }
       }
       if (c.candidates.empty())
-        throw Error(ExitCode::data, std::to_string(npts) + " points in the window: too few for any rational fit" +
-                                        (c.candidate_errors.empty() ? "" : " (" + c.candidate_errors.front() + ")"));
+        throw Error(ExitCode::data, c.candidate_errors.empty()
+                                        ? std::to_string(npts) + " points in the window: too few for any rational fit"
+                                        : "no degrees up to " + std::to_string(o.max_numerator) + "/" +
+                                              std::to_string(o.max_denominator) + " give a usable fit of the " +
+                                              std::to_string(npts) + " points (" +
+                                              std::to_string(c.candidate_errors.size()) + " tried; e.g. " +
+                                              c.candidate_errors.front() + ")");
       // The criterion picks among the candidates whose field falls off inside the window (at most
       // 0.3 of its peak at both ends: a coil's field does, and a fit whose peak sits on the
       // window's edge is fitting the step's shoulder); only if none does, among all.
