@@ -550,14 +550,15 @@ RationalFit fit_rational(const std::vector<double>& r, const std::vector<double>
   const Eigen::MatrixXd* Kp = model == RationalModel::response ? &Kw : nullptr;
   std::vector<double> guard(kGuardPoints);
   for (int i = 0; i < kGuardPoints; ++i) guard[static_cast<size_t>(i)] = -1 + 2.0 * i / (kGuardPoints - 1);
-  // Poles of f/g must stay half a data spacing (median, in x) away from the window: nearer,
-  // f/g has a feature the samples cannot resolve.
+  // Poles of f/g must stay one data spacing (median, in x) away from the window: a bump whose
+  // poles sit at distance w has a half width w, and a bump narrower than two samples across is
+  // not resolved by them (it fits noise; ring8's coils have w = 36-75 mm against 25 mm samples).
   std::vector<double> gaps;
   for (size_t i = 1; i < N; ++i) gaps.push_back(x[i] - x[i - 1]);
   double min_pole = 0;
   if (!gaps.empty()) {
     std::nth_element(gaps.begin(), gaps.begin() + static_cast<long>(gaps.size() / 2), gaps.end());
-    min_pole = 0.5 * gaps[gaps.size() / 2];
+    min_pole = gaps[gaps.size() / 2];
   }
 
   // The homotopy over denominator degrees 0..m for this numerator; each level also starts from
@@ -665,7 +666,7 @@ RationalFit fit_rational(const std::vector<double>& r, const std::vector<double>
   if (!win) {
     if (std::isfinite(bound_cost))
       throw Error(ExitCode::data, "degrees " + std::to_string(n) + "/" + std::to_string(m) +
-                                      ": the least-squares optimum wants a pole within half a data spacing of the "
+                                      ": the least-squares optimum wants a pole within one data spacing of the "
                                       "window (every start ended there): a feature the samples cannot resolve, a "
                                       "spike in the field; use fewer degrees or --degrees auto");
     throw Error(ExitCode::data, any_unconverged ? "the fit did not converge in " + std::to_string(max_iterations) +

@@ -85,7 +85,7 @@ struct RationalFit {
 /// for a resolvable local optimum, which is returned (rss_at_pole_bound then says what the
 /// unresolvable one reached). Each start runs Ceres' Levenberg-Marquardt
 /// with analytic derivatives; a trial step whose denominator touches zero anywhere on
-/// [r_lo, r_hi], or a root of g (complex ones too) within half the median data spacing of the
+/// [r_lo, r_hi], or a root of g (complex ones too) within the median data spacing of the
 /// window, is refused (Ceres treats it as an infinite cost and shrinks its region): the result
 /// keeps g > 0 on the window and no feature narrower than the samples can resolve; the winner's
 /// roots are checked exactly at the end.
