@@ -5,12 +5,16 @@
 // and compares SciPy's least_squares on the same points (bench/RESULTS.md).
 //
 //   bench_tcfit [--machine machine.json] [--phase DIR] [--min-time S] [--detail]
-//               [--seed "COIL,N,M,A,B" ...]
+//               [--extra-starts K] [--seed "COIL,N,M,A,B" ...]
 //
 // fit_rational is called with its default model (RationalModel::value: the paper's fit of the
-// phase shift itself, Eq. 2). --detail appends r_lo,r_hi,iterations,reps,a,b (coefficients in
+// phase shift itself, Eq. 2) and its default extra_starts (64: the placed-root starts tried when
+// every other start ends held at the pole bound; --extra-starts K to change it, 0 = none). Column
+// rss_at_pole_bound is RationalFit::rss_at_pole_bound: the lower rss a fit held at the pole bound
+// reached, when the fit returned is a resolvable optimum above it (nan if none was lower, or
+// refused). --detail appends r_lo,r_hi,iterations,reps,a,b (coefficients in
 // x = (r - centre)/half_width, space separated) for the comparison script. A coil fit_rational
-// refuses (EX_DATAERR: too few points, or an optimum that wants a pole within half a data
+// refuses (EX_DATAERR: too few points, or an optimum that wants a pole within one data
 // spacing of the window) gets a row with rss nan, the median time to the refusal, and start
 // "refused: <message>"; if it was refused for having fewer points than parameters (TC18 at 4/5),
 // a second row fits it at 2/4 (start "fallback 2/4: ..." or "refused: ...").
@@ -71,7 +75,8 @@ struct Timed {
 
 /// Times fit_rational until min_time seconds have passed (at least 3 runs); median per call. A
 /// refusal (EX_DATAERR) is timed as well: the time the library takes to give that answer.
-Timed time_fit(const Scan& s, int n, int m, double min_time, const std::vector<RationalFit>& starts = {}) {
+Timed time_fit(const Scan& s, int n, int m, double min_time, int extra_starts,
+               const std::vector<RationalFit>& starts = {}) {
   Timed t;
   std::vector<double> ms;
   const auto t0 = Clock::now();
@@ -80,7 +85,7 @@ Timed time_fit(const Scan& s, int n, int m, double min_time, const std::vector<R
     RationalFit f;
     std::string why;
     try {
-      f = fit_rational(s.r, s.y, s.lo, s.hi, n, m, starts, 400, RationalModel::value);
+      f = fit_rational(s.r, s.y, s.lo, s.hi, n, m, starts, 400, RationalModel::value, nullptr, extra_starts);
     } catch (const Error& e) {
       if (e.code() != ExitCode::data) throw;
       why = e.what();
@@ -105,6 +110,7 @@ int main(int argc, char** argv) {
   std::string phase = share + "/ring8/measured/phase";
   double min_time = 0.2;
   bool detail = false;
+  int extra_starts = 64;  // fit_rational's default
   std::vector<std::string> seeds;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
@@ -112,10 +118,11 @@ int main(int argc, char** argv) {
     else if (a == "--phase" && i + 1 < argc) phase = argv[++i];
     else if (a == "--min-time" && i + 1 < argc) min_time = std::atof(argv[++i]);
     else if (a == "--detail") detail = true;
+    else if (a == "--extra-starts" && i + 1 < argc) extra_starts = std::atoi(argv[++i]);
     else if (a == "--seed" && i + 1 < argc) seeds.push_back(argv[++i]);
     else {
       std::fprintf(stderr, "usage: bench_tcfit [--machine machine.json] [--phase DIR] [--min-time S] [--detail] "
-                           "[--seed \"COIL,N,M,A,B\" ...]\n");
+                           "[--extra-starts K] [--seed \"COIL,N,M,A,B\" ...]\n");
       return 64;
     }
   }
@@ -139,15 +146,15 @@ int main(int argc, char** argv) {
       if (k == 1 || k >= 16) s.n = 4, s.m = 5;
       scans.push_back(std::move(s));
     }
-    std::printf("# bench_tcfit: %s, scans %s, min time %.3g s per coil, median time per fit_rational call\n",
-                machine.c_str(), phase.c_str(), min_time);
-    std::printf("coil,n,m,points,rss,rms,time_ms,start%s\n", detail ? ",r_lo,r_hi,iterations,reps,a,b" : "");
+    std::printf("# bench_tcfit: %s, scans %s, min time %.3g s per coil, extra starts %d, median time per fit_rational "
+                "call\n", machine.c_str(), phase.c_str(), min_time, extra_starts);
+    std::printf("coil,n,m,points,rss,rms,rss_at_pole_bound,time_ms,start%s\n", detail ? ",r_lo,r_hi,iterations,reps,a,b" : "");
     size_t fits = 0, points = 0, refusals = 0;
     double rss = 0, ms = 0, ms_refused = 0;
     auto row = [&](const std::string& name, const Timed& t, const std::string& start, double lo, double hi) {
       const RationalFit& f = t.fit;
-      std::printf("%s,%d,%d,%zu,%.17g,%.17g,%.6g,%s", name.c_str(), f.n, f.m, f.points, f.rss, f.rms, t.median_ms,
-                  csv_quote(start).c_str());
+      std::printf("%s,%d,%d,%zu,%.17g,%.17g,%.17g,%.6g,%s", name.c_str(), f.n, f.m, f.points, f.rss, f.rms,
+                  f.rss_at_pole_bound, t.median_ms, csv_quote(start).c_str());
       if (detail) std::printf(",%.17g,%.17g,%d,%zu,%s,%s", lo, hi, f.iterations, t.reps, join(f.a).c_str(), join(f.b).c_str());
       std::printf("\n");
       ++fits;
@@ -156,7 +163,7 @@ int main(int argc, char** argv) {
       ms += t.median_ms;
     };
     auto refused = [&](const Scan& s, int n, int m, size_t in_window, const Timed& t) {
-      std::printf("%s,%d,%d,%zu,nan,nan,%.6g,%s", s.name.c_str(), n, m, in_window, t.median_ms,
+      std::printf("%s,%d,%d,%zu,nan,nan,nan,%.6g,%s", s.name.c_str(), n, m, in_window, t.median_ms,
                   csv_quote("refused: " + t.refused).c_str());
       if (detail) std::printf(",%.17g,%.17g,,%zu,,", s.lo, s.hi, t.reps);
       std::printf("\n");
@@ -191,7 +198,7 @@ int main(int argc, char** argv) {
         throw Error(ExitCode::usage, "--seed " + seed + ": want N + 1 numerator and M + 1 denominator coefficients");
       size_t in_window = 0;
       for (double r : s.r) in_window += r >= s.lo && r <= s.hi;
-      const Timed t = time_fit(s, start.n, start.m, min_time, {start});
+      const Timed t = time_fit(s, start.n, start.m, min_time, extra_starts, {start});
       if (t.refused.empty()) row(s.name, t, "seeded: " + t.fit.start, s.lo, s.hi);
       else refused(s, start.n, start.m, in_window, t);
     }
@@ -199,7 +206,7 @@ int main(int argc, char** argv) {
       if (!seeds.empty()) break;
       size_t in_window = 0;
       for (double r : s.r) in_window += r >= s.lo && r <= s.hi;
-      const Timed t = time_fit(s, s.n, s.m, min_time);
+      const Timed t = time_fit(s, s.n, s.m, min_time, extra_starts);
       if (t.refused.empty()) {
         row(s.name, t, t.fit.start, s.lo, s.hi);
         continue;
@@ -207,11 +214,11 @@ int main(int argc, char** argv) {
       refused(s, s.n, s.m, in_window, t);
       if (in_window >= static_cast<size_t>(s.n + 1 + s.m)) continue;  // refused for another reason
       // too few points for the paper's degrees: the 2/4 of the other coils
-      const Timed t2 = time_fit(s, 2, 4, min_time);
+      const Timed t2 = time_fit(s, 2, 4, min_time, extra_starts);
       if (t2.refused.empty()) row(s.name, t2, "fallback 2/4: " + t2.fit.start, s.lo, s.hi);
       else refused(s, 2, 4, in_window, t2);
     }
-    std::printf("total,,,%zu,%.17g,,%.6g,%zu fits (%zu refusals: %.6g ms more)%s\n", points, rss, ms, fits, refusals,
+    std::printf("total,,,%zu,%.17g,,,%.6g,%zu fits (%zu refusals: %.6g ms more)%s\n", points, rss, ms, fits, refusals,
                 ms_refused, detail ? ",,,,,," : "");
   } catch (const Error& e) {
     std::fprintf(stderr, "bench_tcfit: %s\n", e.what());

@@ -13,7 +13,7 @@ scaled variable x = (r - centre)/half_width, g = 1 + b_1 x + ... (b_0 = 1), two 
       Jacobian, tolerances 1e-15, max_nfev 4000, methods 'lm' and 'trf' each from two starts:
       the polynomial one of (a) and the linearized (Levy) fit reweighted by 1/g
       (Sanathanan-Koerner) as turnfit computes it ("lin": the best of 8 passes, stopping at the
-      first g turnfit would not accept: g <= 1e-9 on [-1, 1] or a root within half a data
+      first g turnfit would not accept: g <= 1e-9 on [-1, 1] or a root within one data
       spacing of it, see below); where that stops at the first pass (turnfit then has no
       linearized start) the best of 8 unconstrained passes ("lin*": scipy does not mind a pole
       in its start). The lowest rss of the 4 runs is kept (column "(b) run"), the time is that
@@ -21,19 +21,23 @@ scaled variable x = (r - centre)/half_width, g = 1 + b_1 x + ... (b_0 = 1), two 
 
 Each fit (start included) is repeated until --min-time seconds have passed; the median per fit is
 reported (for a coil turnfit refuses, the time to the refusal). Every denominator g is judged
-the way turnfit's fit_rational judges its own since the commit "tc-fit: three models ...": the
-distance, in the complex plane and in x, from g's nearest root (complex roots too) to [-1, 1],
-against half the median spacing of the window's samples (in x; 12.5 mm for ring8's 25 mm
-steps). Nearer, f/g has a feature the samples cannot resolve (a spike in the fitted curve and
-far more in its slope, the field); fit_rational keeps its trial steps out of that zone and
-refuses a fit whose optimum is held at its boundary (distance < 1.02 half spacings). Columns
-"g": ROOT, a real root of g on [-1, 1] (the plain check: f/g infinite between two samples,
-which least_squares has no way to forbid); near, no real root on the window but a root within
-half a spacing of it; "-", pole-free by that measure. Column "pole mm": that distance times the
-half width, in mm (0 for ROOT).
+the way turnfit's fit_rational judges its own since the commit "rational fit: poles kept one
+data spacing from the window": the distance, in the complex plane and in x, from g's nearest
+root (complex roots too) to [-1, 1], against the median spacing of the window's samples (in x;
+25 mm for ring8's steps). Nearer, f/g has a feature the samples cannot resolve (a spike in the
+fitted curve and far more in its slope, the field); fit_rational keeps its trial steps out of
+that zone and does not return a fit held at its boundary (distance < 1.02 spacings, 25.5 mm):
+that is the bound used here. Columns "pole mm": ROOT, a real root of g on [-1, 1] (the plain
+check: f/g infinite between two samples, which least_squares has no way to forbid); "near D",
+no real root on the window but a root D mm from it, inside the bound; a number, the nearest
+root's distance in mm, pole-free by that measure. Column "tf held rss": fit_rational's
+rss_at_pole_bound, the lower rss a fit held at the bound reached where the fit returned is a
+resolvable optimum above it. turnfit is also run with --extra-starts 0 (without the placed-root
+starts fit_rational adds when every other start ends at the bound): the coils whose answer
+those starts change are listed.
 
 --multistart K adds, per coil, the best scipy optimum over K seeded random starts ('lm',
-analytic Jacobian) whose g is pole-free by the same measure: a search for a resolvable optimum
+analytic Jacobian) whose g is pole-free by the same bound: a search for a resolvable optimum
 below turnfit's (or one on a coil turnfit refuses). SciPy's pole-free result for a coil is the
 lowest rss of (a), (b) and that search among those that are pole-free; the summary counts the
 coils where turnfit's result (pole-free by construction) is <= it. Where the search finds a
@@ -83,8 +87,10 @@ def read_scan(path):
     return np.array(r), np.array(y)
 
 
-def run_bench(binary, machine, phase, min_time, seeds=()):
+def run_bench(binary, machine, phase, min_time, seeds=(), extra=None):
     cmd = [binary, "--detail", "--min-time", str(min_time)]
+    if extra is not None:
+        cmd += ["--extra-starts", str(extra)]
     for sd in seeds:
         cmd += ["--seed", sd]
     if machine:
@@ -150,11 +156,11 @@ def polynomial_start(x, y, n, m):
     return np.concatenate((a, np.zeros(m)))
 
 
-def linearized_start(x, y, n, m, feasible_only=True, half_spacing=0.0):
+def linearized_start(x, y, n, m, feasible_only=True, bound=0.0):
     """Levy's linearized fit f - y g = 0, reweighted by 1/g (Sanathanan-Koerner), 8 passes: the
     pass with the least true rss. With feasible_only (turnfit's start) the passes stop at the
-    first g that turnfit would not accept (g <= 1e-9 somewhere on [-1, 1], or a root within
-    half_spacing of it; None if the first pass has one); without, any finite pass counts."""
+    first g that turnfit would not accept (g <= 1e-9 somewhere on [-1, 1], or a root within the
+    bound of it; None if the first pass has one); without, any finite pass counts."""
     A = np.hstack((vander(x, n), -y[:, None] * vander(x, m)[:, 1:]))
     w = np.ones(len(x))
     best, best_cost = None, np.inf
@@ -163,7 +169,7 @@ def linearized_start(x, y, n, m, feasible_only=True, half_spacing=0.0):
         if not np.all(np.isfinite(t)):
             break
         b = np.concatenate(([1.0], t[n + 1:]))
-        if feasible_only and m > 0 and (den_min(b) <= 1e-9 or not nearest_root(b)[0] > half_spacing):
+        if feasible_only and m > 0 and (den_min(b) <= 1e-9 or not nearest_root(b)[0] > bound):
             break
         g = vander(x, m) @ b
         cost = np.sum((vander(x, n) @ t[: n + 1] / g - y) ** 2)
@@ -181,12 +187,12 @@ def fit_paper(x, y, n, m):
     return s.x, s.nfev, s.status, "lm"
 
 
-def fit_best(x, y, n, m, half_spacing):
+def fit_best(x, y, n, m, spacing):
     scale = np.max(np.abs(y)) or 1.0
     ys = y / scale
     fun, jac = make_problem(x, ys, n, m)
     starts = []
-    lin = linearized_start(x, ys, n, m, half_spacing=half_spacing)
+    lin = linearized_start(x, ys, n, m, bound=spacing)  # fit_rational's feasibility: > 1 spacing
     if lin is not None:
         starts.append(("lin", lin))
     else:  # turnfit has no linearized start here; scipy does not mind a pole in its start
@@ -225,10 +231,10 @@ def timed(fn, min_time):
     return out, 1e3 * float(np.median(ts))
 
 
-def multistart(x, y, n, m, k, half_spacing, seed=1):
+def multistart(x, y, n, m, k, bound, seed=1):
     """Best (rss in data units, theta) over k random starts of 'lm' (analytic Jacobian) whose
-    optimum's g is pole-free by root_class (no root within half_spacing of [-1, 1]), and how
-    many such optima there were."""
+    optimum's g is pole-free by root_class (no root within bound of [-1, 1]), and how many such
+    optima there were."""
     scale = np.max(np.abs(y)) or 1.0
     fun, jac = make_problem(x, y / scale, n, m)
     rng = np.random.default_rng(seed)
@@ -241,7 +247,7 @@ def multistart(x, y, n, m, k, half_spacing, seed=1):
                 s = least_squares(fun, t0, jac=jac, method="lm", ftol=1e-15, xtol=1e-15, gtol=1e-15, max_nfev=2000)
             except Exception:
                 continue
-        if not np.isfinite(s.cost) or root_class(np.concatenate(([1.0], s.x[n + 1:])), half_spacing)[0] != "-":
+        if not np.isfinite(s.cost) or root_class(np.concatenate(([1.0], s.x[n + 1:])), bound)[0] != "-":
             continue
         count += 1
         rss = 2 * s.cost * scale * scale
@@ -266,13 +272,13 @@ def nearest_root(b):
     return float(d[k]), roots[k]
 
 
-def root_class(b, half_spacing):
+def root_class(b, bound):
     """'ROOT': g has a real root on [-1, 1]; 'near': none, but a root (complex ones too) lies
-    within half_spacing (in x) of the window; '-' otherwise. Also the distance (0 for ROOT)."""
+    within bound (in x) of the window; '-' otherwise. Also the distance (0 for ROOT)."""
     if has_pole(b):
         return "ROOT", 0.0
     dist, _ = nearest_root(b)
-    return ("near" if dist < half_spacing else "-"), dist
+    return ("near" if dist < bound else "-"), dist
 
 
 def edge_values(a, b):
@@ -308,6 +314,7 @@ def main():
     if not os.path.exists(binary):
         sys.exit("bench_tcfit_scipy.py: %s: no such binary (build it: cmake --build BUILD --target bench_tcfit)" % o.bin)
     cmd, rows = run_bench(binary, o.machine, o.phase, o.min_time)
+    _, rows0 = run_bench(binary, o.machine, o.phase, o.min_time, extra=0)
     print("# turnfit: %s" % " ".join(cmd))
     print("# scipy %s, numpy %s, python %s; scipy (a) and (b) as in this script's docstring" % (
         scipy.__version__, np.__version__, sys.version.split()[0]))
@@ -326,7 +333,8 @@ def main():
         sel = (r >= lo) & (r <= hi)
         centre, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
         x, yw = (r[sel] - centre) / half, y[sel]
-        hs = 0.5 * float(np.median(np.diff(x))) if len(x) > 1 else 0.0  # fit_rational's min_pole
+        sp = float(np.median(np.diff(x))) if len(x) > 1 else 0.0  # fit_rational's min_pole
+        hs = 1.02 * sp  # the bound: fit_rational returns no fit with a root nearer than this
         if len(x) != int(row["points"]):
             sys.exit("%s: %d points in the window here, %s in bench_tcfit" % (coil, len(x), row["points"]))
         if len(crows) > 1:  # refused at the paper's degrees for too few points, fitted at 2/4
@@ -341,7 +349,11 @@ def main():
                          % (coil, fn_, fm_, len(x), fn_ + 1 + fm_, first["start"], smsg, n, m))
             label = coil + "*"
         res = {"coil": label, "n": n, "m": m, "points": len(x), "half": half, "hs_mm": hs * half, "tf_rss": None,
-               "tf_ms": float(row["time_ms"]), "tf_state": "fitted", "tf_dist": None}
+               "tf_ms": float(row["time_ms"]), "tf_state": "fitted", "tf_dist": None, "tf_held": None,
+               "tf_start": row["start"]}
+        held = float(row["rss_at_pole_bound"])
+        if np.isfinite(held):
+            res["tf_held"] = held
         if not row["start"].startswith("refused"):
             tf_theta = np.array([float(v) for v in row["a"].split()] + [float(v) for v in row["b"].split()[1:]])
             tf_b = np.concatenate(([1.0], tf_theta[n + 1:]))
@@ -351,14 +363,17 @@ def main():
             here = rss_of(tf_theta, x, yw, n, m)
             if abs(here - res["tf_rss"]) > 1e-6 * res["tf_rss"]:
                 notes.append("%s: turnfit's coefficients give rss %.6e here, it reported %.6e" % (coil, here, res["tf_rss"]))
-            if cls != "-" or dist < 1.02 * hs:
-                notes.append("%s turnfit: its g has a root %.3g mm from the window (half spacing %.3g mm): the library "
+            if cls != "-":
+                notes.append("%s turnfit: its g has a root %.3g mm from the window (bound %.3g mm): the library "
                              "should have refused this fit" % (label, dist * half, hs * half))
+            if res["tf_held"] is not None:
+                notes.append("%s turnfit: fitted (start %s, rss %.10e); a fit held at the pole bound reached rss %.10e "
+                             "(x%.6f)" % (label, row["start"], res["tf_rss"], held, held / res["tf_rss"]))
         else:
             res["tf_state"] = short_refusal(row["start"])
             notes.append("%s at %d/%d: turnfit %s" % (label, n, m, row["start"]))
         cands = []  # scipy's pole-free results: (rss, source, dist)
-        for key, fn in (("a", lambda: fit_paper(x, yw, n, m)), ("b", lambda: fit_best(x, yw, n, m, hs))):
+        for key, fn in (("a", lambda: fit_paper(x, yw, n, m)), ("b", lambda: fit_best(x, yw, n, m, sp))):
             (th, nfev, status, method), ms = timed(fn, o.min_time)
             b = np.concatenate(([1.0], th[n + 1:]))
             res[key + "_rss"] = rss_of(th, x, yw, n, m)
@@ -377,7 +392,7 @@ def main():
             elif res[key + "_g"] == "near":
                 _, z = nearest_root(b)
                 notes.append("%s scipy (%s): g's nearest root x = %.4f%+.4fi (r = %.1f%+.1fi mm), %.2f mm from the window "
-                             "(half spacing %.1f mm)" % (label, key, z.real, z.imag, centre + half * z.real, half * z.imag,
+                             "(bound %.1f mm)" % (label, key, z.real, z.imag, centre + half * z.real, half * z.imag,
                                                           dist * half, hs * half))
             if res["tf_rss"] is not None and res[key + "_rss"] < res["tf_rss"] * (1 - REL_TIE):
                 notes.append("%s scipy (%s): rss %.10e < turnfit's %.10e (%s, g %s, min g on [-1, 1] %.3g); a = [%s], b = [1, %s]" % (
@@ -416,20 +431,30 @@ def main():
 
     def mm(t, key):
         d = t[key + "_dist"]
-        return "-" if d is None else ("inf" if not np.isfinite(d) else "%.1f" % (d * t["half"]))
+        if d is None:
+            return "-"
+        g = t.get(key + "_g", "-")
+        if g == "ROOT":
+            return "ROOT"
+        v = "inf" if not np.isfinite(d) else "%.1f" % (d * t["half"])
+        return "near " + v if g == "near" else v
 
-    hdr = ["coil", "n/m", "pts", "turnfit", "turnfit rss", "tf pole mm", "scipy(a) rss", "(a)/tf", "(a) g", "(a) pole mm",
-           "scipy(b) rss", "(b)/tf", "(b) g", "(b) pole mm", "(b) run", "scipy pole-free rss", "from", "tf ms", "(a) ms",
-           "(b) ms", "(a)/tf time", "(b)/tf time"]
+    def state(t):
+        if t["tf_state"] == "fitted" and t["tf_start"] == "placed roots":
+            return "fitted (placed)"
+        return t["tf_state"]
+
+    hdr = ["coil", "n/m", "pts", "turnfit", "turnfit rss", "tf pole mm", "tf held rss", "scipy(a) rss", "(a)/tf",
+           "(a) pole mm", "scipy(b) rss", "(b)/tf", "(b) pole mm", "(b) run", "scipy pole-free rss", "from", "tf ms",
+           "(a) ms", "(b) ms"]
     body = []
     for t in table:
-        body.append([t["coil"], "%d/%d" % (t["n"], t["m"]), str(t["points"]), t["tf_state"], num(t["tf_rss"], "%.6e"),
-                     mm(t, "tf"), "%.6e" % t["a_rss"], ratio(t["a_rss"], t["tf_rss"]), t["a_g"], mm(t, "a"),
-                     "%.6e" % t["b_rss"], ratio(t["b_rss"], t["tf_rss"]), t["b_g"], mm(t, "b"), t["b_method"],
+        body.append([t["coil"], "%d/%d" % (t["n"], t["m"]), str(t["points"]), state(t), num(t["tf_rss"], "%.6e"),
+                     mm(t, "tf"), num(t["tf_held"], "%.6e"), "%.6e" % t["a_rss"], ratio(t["a_rss"], t["tf_rss"]),
+                     mm(t, "a"), "%.6e" % t["b_rss"], ratio(t["b_rss"], t["tf_rss"]), mm(t, "b"), t["b_method"],
                      "-" if t["sp_free"] is None else "%.6e" % t["sp_free"][0],
                      "-" if t["sp_free"] is None else SOURCE[t["sp_free"][1]],
-                     "%.2f" % t["tf_ms"], "%.2f" % t["a_ms"], "%.2f" % t["b_ms"],
-                     tratio(t["a_ms"], t["tf_ms"]), tratio(t["b_ms"], t["tf_ms"])])
+                     "%.2f" % t["tf_ms"], "%.2f" % t["a_ms"], "%.2f" % t["b_ms"]])
     if o.markdown:
         print("| " + " | ".join(hdr) + " |")
         print("| " + " | ".join("---" for _ in hdr) + " |")
@@ -448,7 +473,7 @@ def main():
     dists = [t["tf_dist"] * t["half"] for t in fitted]
     spacing = [t["hs_mm"] for t in table]
     print("turnfit: %d of %d coils fitted, refused %s; nearest root of the fitted g's %s mm from the window "
-          "(half spacing %.1f-%.1f mm); time %.1f ms for the fits, %.1f ms with the refusals"
+          "(bound %.1f-%.1f mm); time %.1f ms for the fits, %.1f ms with the refusals"
           % (len(fitted), len(table), why, "%.1f-%.1f" % (min(dists), max(dists)) if dists else "-",
              min(spacing), max(spacing), tf_fit_ms, tf_all_ms))
     for key, name in (("a", "scipy (a) paper-style lm"), ("b", "scipy (b) analytic Jacobian, best of 4 runs")):
@@ -456,7 +481,7 @@ def main():
         lower = [t for t in fitted if t not in le]
         clean = [t for t in fitted if t[key + "_g"] == "-"]
         tot = sum(t[key + "_ms"] for t in table)
-        print("summary %s: real root of g on the window on %d coils (%s); root within half a spacing (ROOT or near) on %d "
+        print("summary %s: real root of g on the window on %d coils (%s); root within the bound (ROOT or near) on %d "
               "(%s); on turnfit's %d fitted coils turnfit rss <= scipy's (rel. 1e-9) on %d, scipy lower on %s; where "
               "scipy's is pole-free too (%d) turnfit <= scipy on %d (largest |rss ratio - 1| %.1e); time %.1f ms for all "
               "%d coils against turnfit's %.1f (x%.2f)"
@@ -479,6 +504,26 @@ def main():
                        if t["sp_free"] is not None) or "none",
              ", ".join(t["coil"] for t in fitted if t["sp_free"] is None) or "none",
              ", ".join(t["coil"] for t in refused if t["sp_free"] is None) or "none"))
+    # what the placed-root starts change: the same run with --extra-starts 0
+    last0 = {}
+    for r0 in rows0:
+        if r0["coil"] != "total":
+            last0[r0["coil"]] = r0
+    for t in table:
+        r0 = last0.get(t["coil"].rstrip("*"))
+        if r0 is None:
+            continue
+        s0 = r0["start"]
+        if t["tf_start"] != s0 or (t["tf_rss"] is not None and abs(float(r0["rss"]) - t["tf_rss"]) > REL_TIE * t["tf_rss"]):
+            print("extra starts %s %d/%d: with --extra-starts 0 turnfit %s (%s ms); with 64 %s (%.2f ms)" % (
+                t["coil"], t["n"], t["m"],
+                ("refuses: " + short_refusal(s0)[len("refused: "):]) if s0.startswith("refused") else
+                "fits rss %.10e (start %s)" % (float(r0["rss"]), s0), r0["time_ms"],
+                t["tf_state"] if t["tf_rss"] is None else "fits rss %.10e (start %s)" % (t["tf_rss"], t["tf_start"]),
+                t["tf_ms"]))
+        elif t["tf_rss"] is None:
+            print("extra starts %s %d/%d: refused either way; %s ms without the placed-root starts, %.2f ms with 64" % (
+                t["coil"], t["n"], t["m"], r0["time_ms"], t["tf_ms"]))
     if o.multistart > 0:
         for t in table:
             best, k = t["ms"]
