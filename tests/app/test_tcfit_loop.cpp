@@ -42,9 +42,7 @@ double shape_rms(const CoilFit& c, const TrimCoil& truth) {
 
 /// Noiseless phase scans of every truth coil (the truth machine at its design-variable values).
 std::vector<PhaseData> noiseless_scans(const Machine& truth) {
-  TrackSettings st;
-  st.turns = truth.tracking.turns;
-  st.step_deg = truth.tracking.step_deg;
+  const TrackSettings st = machine_track_settings(truth);
   PhaseModel pm;
   pm.noise_deg = 0;
   std::vector<PhaseData> out;

@@ -164,12 +164,9 @@ int run_synth(const SynthOptions& o) {
   s.particles = o.particles > 0 ? static_cast<size_t>(o.particles)
                 : (m.bunch && m.bunch->particles > 0) ? static_cast<size_t>(m.bunch->particles) : 2000;
   TrackSettings& st = s.track;
-  st.integrator = !o.integrator.empty() ? o.integrator : !m.tracking.integrator.empty() ? m.tracking.integrator : "azimuth";
-  if (st.integrator != "azimuth" && st.integrator != "rk4")
-    throw data_error(m.path, 0, "/tracking/integrator: unknown integrator '" + st.integrator + "'");
-  st.steps_per_turn = m.tracking.steps_per_turn > 0 ? m.tracking.steps_per_turn : 2880;
-  st.step_deg = o.step_deg > 0 ? o.step_deg : m.tracking.step_deg;
-  st.turns = o.turns > 0 ? o.turns : m.tracking.turns;
+  st = machine_track_settings(m, o.integrator);
+  if (o.step_deg > 0) st.step_deg = o.step_deg;
+  if (o.turns > 0) st.turns = o.turns;
   if (!(st.turns > 0)) throw usage_error("no turn count: give --turns or tracking.turns in the machine");
   if (st.integrator == "rk4" && !(m.rf.frequency_MHz > 0))
     throw usage_error("the rk4 integrator needs an RF frequency (rf.frequency_MHz) for its time step");

@@ -170,17 +170,12 @@ int run_track(const TrackOptions& o) {
     for (const auto& line : effects_without_opal_input(m.effect_set))
       cli::warn(o.common, "--opal-compat with effect " + line + "; applied, but this run has no OPAL counterpart");
   warn_probes_outside(o.common, model);
-  TrackSettings st;
-  st.integrator = o.opal_compat ? "rk4"
-                  : !o.integrator.empty() ? o.integrator
-                  : !m.tracking.integrator.empty() ? m.tracking.integrator : "azimuth";
-  if (st.integrator != "azimuth" && st.integrator != "rk4")
-    throw data_error(m.path, 0, "/tracking/integrator: unknown integrator '" + st.integrator + "'");
-  st.steps_per_turn = o.steps_per_turn > 0 ? o.steps_per_turn : m.tracking.steps_per_turn > 0 ? m.tracking.steps_per_turn : 2880;
+  TrackSettings st = machine_track_settings(m, o.opal_compat ? "rk4" : o.integrator);
+  if (o.steps_per_turn > 0) st.steps_per_turn = o.steps_per_turn;
   if (st.steps_per_turn < 16)
     throw data_error(m.path, 0, "/tracking/steps_per_turn: " + std::to_string(st.steps_per_turn) + " is too few (at least 16)");
-  st.step_deg = o.step_deg > 0 ? o.step_deg : m.tracking.step_deg;
-  st.turns = o.turns > 0 ? o.turns : m.tracking.turns > 0 ? m.tracking.turns : 0;
+  if (o.step_deg > 0) st.step_deg = o.step_deg;
+  if (o.turns > 0) st.turns = o.turns;
   if (!(st.turns > 0)) throw usage_error("no turn count: give --turns or tracking.turns in the machine");
   if (st.integrator == "rk4" && !(model.rf_MHz > 0))
     throw usage_error("the rk4 integrator needs an RF frequency (rf.frequency_MHz) for its time step");

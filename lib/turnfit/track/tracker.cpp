@@ -33,6 +33,17 @@ ParticleState injection_state(const Injection& inj, double mass_MeV, bool opal_s
   return s;
 }
 
+TrackSettings machine_track_settings(const Machine& m, const std::string& integrator) {
+  TrackSettings st;
+  st.integrator = !integrator.empty() ? integrator : !m.tracking.integrator.empty() ? m.tracking.integrator : "azimuth";
+  if (st.integrator != "azimuth" && st.integrator != "rk4")
+    throw data_error(m.path, 0, "/tracking/integrator: unknown integrator '" + st.integrator + "'");
+  st.steps_per_turn = m.tracking.steps_per_turn > 0 ? m.tracking.steps_per_turn : 2880;
+  st.step_deg = m.tracking.step_deg;
+  st.turns = m.tracking.turns;
+  return st;
+}
+
 Injection effective_injection(const Machine& m) {
   if (!m.injection) throw data_error(m.path, 0, "/injection: the machine has no injection block to track from");
   Injection in = *m.injection;

@@ -96,6 +96,12 @@ ParticleState injection_state(const Injection& inj, double mass_MeV, bool opal_s
 /// The machine must have an injection block (EX_DATAERR otherwise).
 Injection effective_injection(const Machine& m);
 
+/// Tracking settings from a machine's `tracking` block: its integrator unless `integrator` is
+/// given (else azimuth), its steps per turn (else 2880), step and turns (0 if it has none: the
+/// caller decides what a missing turn count means). EX_DATAERR naming /tracking/integrator for
+/// an unknown integrator. Tools apply their own options on top.
+TrackSettings machine_track_settings(const Machine& m, const std::string& integrator = "");
+
 /// Kinetic energy [MeV] of a state.
 double kinetic_energy(const ParticleState& s, double mass_MeV);
 
