@@ -124,6 +124,26 @@ void check_phase_machine(const Machine& m) {
                                 "to define the crest");
 }
 
+/// sin of phases in degrees.
+std::vector<double> sines(const std::vector<double>& phase_deg) {
+  std::vector<double> s(phase_deg.size());
+  for (size_t i = 0; i < phase_deg.size(); ++i) s[i] = std::sin(phase_deg[i] * kPi / 180);
+  return s;
+}
+
+/// The reference particle's history (radii, crest phases) with `coil` put into the model: at
+/// index `slot` of its coils, or added when slot is past the end. Tabulated as make_track_model
+/// builds its coils (unless the model keeps the formula).
+void history_with(const Machine& m, const TrackModel& base, const TrimCoil& coil, size_t slot, const TrackSettings& st,
+                  std::vector<double>& r, std::vector<double>& psi) {
+  TrackModel exc = base;
+  TrimCoilField f(coil, base.map.grid().symmetry);
+  if (!base.opal_map) f.tabulate(base.map.grid().r_min_m(), base.map.grid().r_max_m());
+  if (slot < exc.coils.size()) exc.coils[slot] = std::move(f);
+  else exc.coils.push_back(std::move(f));
+  phase_history(m, exc, st, r, psi);
+}
+
 /// The scan of one coil, given the reference run's history (r0, p0: the same for every coil).
 PhaseScan phase_scan_on(const Machine& m, const TrackModel& base, size_t coil, const TrackSettings& st,
                         const PhaseModel& pm, std::uint64_t seed, const std::vector<double>& r0,
@@ -134,24 +154,18 @@ PhaseScan phase_scan_on(const Machine& m, const TrackModel& base, size_t coil, c
   out.nominal_T = tc.bmax_T;
   out.excitation_T = pm.excitation_T;
   std::vector<double> r1, p1;
-  TrackModel exc = base;
   // The coil as the model built it: effects (trimcoil-sectors) may have changed its sectors, and
   // the excitation must act where the coil does.
   TrimCoil excited = base.coils.at(coil).coil();
   excited.bmax_T += pm.excitation_T;
-  exc.coils[coil] = TrimCoilField(excited, base.map.grid().symmetry);
-  // The same lookup table as make_track_model builds (unless the model keeps the formula).
-  if (!base.opal_map) exc.coils[coil].tabulate(base.map.grid().r_min_m(), base.map.grid().r_max_m());
-  phase_history(m, exc, st, r1, p1);
+  history_with(m, base, excited, coil, st, r1, p1);
   if (r0.size() < 2 || r1.size() < 2)
     throw data_error(m.path, 0, "/trimcoils/" + std::to_string(coil) + ": the phase scan of " + tc.name +
                                     " saw fewer than two turns on the phase probes' line");
   // Phase probes every step_mm over the radii both runs crossed.
   const double lo = std::max(r0.front(), r1.front()), hi = std::min(*std::max_element(r0.begin(), r0.end()),
                                                                     *std::max_element(r1.begin(), r1.end()));
-  std::vector<double> s0(p0.size()), s1(p1.size());
-  for (size_t i = 0; i < p0.size(); ++i) s0[i] = std::sin(p0[i] * kPi / 180);
-  for (size_t i = 0; i < p1.size(); ++i) s1[i] = std::sin(p1[i] * kPi / 180);
+  const std::vector<double> s0 = sines(p0), s1 = sines(p1);
   const std::uint64_t stream = kPhaseStream + coil;
   size_t j = 0;
   for (double k = std::ceil(lo / pm.step_mm - 1e-9); k * pm.step_mm <= hi + 1e-9; k += 1) {
@@ -269,8 +283,7 @@ std::vector<std::vector<double>> phase_response(const Machine& m, const std::vec
   base.probes = {phase_line(base, azimuth_deg)};
   std::vector<double> r0, p0;
   phase_history(m, base, st, r0, p0);
-  std::vector<double> s0(p0.size());
-  for (size_t i = 0; i < p0.size(); ++i) s0[i] = std::sin(p0[i] * kPi / 180);
+  const std::vector<double> s0 = sines(p0);
   std::vector<std::vector<double>> out(fields.size());
   std::atomic<size_t> next{0};
   std::mutex err_mutex;
@@ -278,14 +291,9 @@ std::vector<std::vector<double>> phase_response(const Machine& m, const std::vec
   auto work = [&] {
     for (size_t k; (k = next++) < fields.size();) {
       try {
-        TrackModel exc = base;
-        TrimCoilField f(fields[k], base.map.grid().symmetry);
-        if (!base.opal_map) f.tabulate(base.map.grid().r_min_m(), base.map.grid().r_max_m());
-        exc.coils.push_back(std::move(f));
         std::vector<double> r1, p1;
-        phase_history(m, exc, st, r1, p1);
-        std::vector<double> s1(p1.size());
-        for (size_t i = 0; i < p1.size(); ++i) s1[i] = std::sin(p1[i] * kPi / 180);
+        history_with(m, base, fields[k], base.coils.size(), st, r1, p1);
+        const std::vector<double> s1 = sines(p1);
         std::vector<double>& o = out[k];
         for (double r : r_mm) o.push_back((interpolate(r1, s1, r) - interpolate(r0, s0, r)) / fields[k].bmax_T);
       } catch (...) {

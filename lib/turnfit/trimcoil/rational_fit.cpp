@@ -453,21 +453,14 @@ Eigen::VectorXd RationalFit::slope_gradient(double r) const {
 }
 
 std::vector<double> polynomial_in_r(const std::vector<double>& c_x, double centre, double half_width) {
-  // p(x) with x = (r - c)/h = sum_k c_k h^-k (r - c)^k; (r - c)^k expanded by the binomial theorem.
-  const size_t n = c_x.size();
-  std::vector<long double> out(n, 0.0L);
-  const long double c = centre, hinv = 1.0L / static_cast<long double>(half_width);
-  for (size_t k = 0; k < n; ++k) {
-    long double coef = static_cast<long double>(c_x[k]);
-    for (size_t i = 0; i < k; ++i) coef *= hinv;
-    long double binom = 1;  // C(k, j)
-    for (size_t j = 0; j <= k; ++j) {
-      long double pw = 1;  // (-c)^(k - j)
-      for (size_t i = 0; i < k - j; ++i) pw *= -c;
-      out[j] += coef * binom * pw;
-      binom = binom * static_cast<long double>(k - j) / static_cast<long double>(j + 1);
-    }
+  // p(x) with x = (r - c)/h = q(r - c), q_k = c_k h^-k; q(r - c) in powers of r is q shifted by -c.
+  std::vector<long double> q(c_x.begin(), c_x.end());
+  long double hk = 1;
+  for (long double& v : q) {
+    v *= hk;
+    hk /= static_cast<long double>(half_width);
   }
+  const std::vector<long double> out = taylor_shift(std::move(q), -static_cast<long double>(centre));
   return std::vector<double>(out.begin(), out.end());
 }
 

@@ -147,6 +147,15 @@ std::map<std::string, std::string> metadata(const std::vector<std::string>& comm
   return kv;
 }
 
+/// A metadata value as a finite number (0 if absent or not a number: the keys are informative).
+double meta_number(const std::map<std::string, std::string>& kv, const std::string& key) {
+  const auto it = kv.find(key);
+  if (it == kv.end()) return 0;
+  char* end = nullptr;
+  const double v = std::strtod(it->second.c_str(), &end);
+  return end == it->second.c_str() || *end || !std::isfinite(v) ? 0 : v;
+}
+
 bool valid_coil_name(const std::string& s) {
   return !s.empty() && s.find_first_of(",\"\r\n") == std::string::npos;
 }
@@ -287,18 +296,7 @@ std::vector<PhaseData> read_phase_data(const std::string& path) {
   const auto meta = metadata(t.comments());
   const size_t cr = t.column("r_mm"), cy = t.column("dsinphi");
   const bool has_coil = t.has_column("coil");
-  double excitation = 0;
-  if (auto it = meta.find("excitation_T"); it != meta.end()) {
-    char* end = nullptr;
-    excitation = std::strtod(it->second.c_str(), &end);
-    if (end == it->second.c_str() || *end || !std::isfinite(excitation)) excitation = 0;
-  }
-  double azimuth = 0;
-  if (auto it = meta.find("azimuth_deg"); it != meta.end()) {
-    char* end = nullptr;
-    azimuth = std::strtod(it->second.c_str(), &end);
-    if (end == it->second.c_str() || *end || !std::isfinite(azimuth)) azimuth = 0;
-  }
+  const double excitation = meta_number(meta, "excitation_T"), azimuth = meta_number(meta, "azimuth_deg");
   std::string file_coil;
   if (!has_coil) {
     if (auto it = meta.find("coil"); it != meta.end()) file_coil = it->second;
@@ -341,11 +339,7 @@ std::vector<PhaseData> read_phase_data(const std::string& path) {
 LinearResponse coil_response(const Machine& m, const TrimCoil* mc, const std::vector<double>& r_mm, double r_lo,
                              double r_hi, double step, double azimuth_deg, unsigned threads,
                              std::map<std::string, std::vector<double>>& cache) {
-  TrackSettings st;
-  st.integrator = m.tracking.integrator.empty() ? "azimuth" : m.tracking.integrator;
-  st.steps_per_turn = m.tracking.steps_per_turn > 0 ? m.tracking.steps_per_turn : 2880;
-  st.step_deg = m.tracking.step_deg;
-  st.turns = m.tracking.turns;
+  const TrackSettings st = machine_track_settings(m);
   if (!(st.turns > 0)) throw data_error(m.path, 0, "/tracking/turns: --model tracked tracks the machine; it has no turn count");
   // The knots: multiples of the step inside the window (shared between coils, so cached).
   std::vector<long> knots;

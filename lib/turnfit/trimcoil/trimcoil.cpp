@@ -20,16 +20,20 @@ void poly(const std::vector<double>& c, double x, double& p, double& dp, double&
     p = p * x + c[i];
   }
 }
-/// Coefficients of p(c + y) in y (a Taylor shift), accumulated in long double.
+/// Coefficients of p(c + y) in y, accumulated in long double.
 std::vector<double> shifted(const std::vector<double>& a, double c) {
-  const size_t n = a.size();
-  std::vector<long double> b(a.begin(), a.end());
-  // Repeated synthetic division by (x - c): after pass k, b[k] is the k-th Taylor coefficient.
-  for (size_t k = 0; k < n; ++k)
-    for (size_t i = n - 1; i > k; --i) b[i - 1] += static_cast<long double>(c) * b[i];
+  const std::vector<long double> b = taylor_shift(std::vector<long double>(a.begin(), a.end()), c);
   return std::vector<double>(b.begin(), b.end());
 }
 }  // namespace
+
+std::vector<long double> taylor_shift(std::vector<long double> b, long double c) {
+  const size_t n = b.size();
+  // Repeated synthetic division by (x - c): after pass k, b[k] is the k-th Taylor coefficient.
+  for (size_t k = 0; k < n; ++k)
+    for (size_t i = n - 1; i > k; --i) b[i - 1] += c * b[i];
+  return b;
+}
 
 void rational(const std::vector<double>& num, const std::vector<double>& den, double x, double& q,
               double& dq, double& d2q) {

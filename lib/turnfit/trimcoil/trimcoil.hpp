@@ -67,6 +67,9 @@ class TrimCoilField {
   std::vector<Segment> lut_;  // sorted, disjoint; outside them the formula applies
 };
 
+/// Coefficients of p(c + y) in y from those of p (a Taylor shift by repeated synthetic division).
+std::vector<long double> taylor_shift(std::vector<long double> coefficients, long double c);
+
 /// The PSI-BFIELD description of a PSI-PHASE coil: the same field, B = bmax (f g' - f' g) / g^2
 /// (numerator degree n + m - 1, denominator 2m), in the coil's coefficient origin.
 TrimCoil bfield_from_phase(const TrimCoil& phase);
