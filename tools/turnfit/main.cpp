@@ -18,6 +18,7 @@ const char* const kTools[][2] = {
     {"peakfind", "the turns in a probe profile: positions, heights, widths, flags"},
     {"compare", "measured vs simulated turn radii: errors per probe, objectives, exit 0/1 like diff"},
     {"tc-fit", "rational fits of trim coil phase-shift scans: normalized field profiles"},
+    {"plot", "figures (PNG, SVG) of profiles and peaks, turn separation, residuals, trim coil fits"},
 };
 
 void usage(std::ostream& os) {

@@ -12,6 +12,7 @@ enum class ExitCode : int {
   usage = 64,        ///< EX_USAGE: bad command line
   data = 65,         ///< EX_DATAERR: input data is malformed or out of range
   no_input = 66,     ///< EX_NOINPUT: an input file cannot be opened
+  unavailable = 69,  ///< EX_UNAVAILABLE: a program the tool needs (gnuplot) is missing
   software = 70,     ///< EX_SOFTWARE: internal error
   cant_create = 73,  ///< EX_CANTCREAT: an output file cannot be created
   io = 74,           ///< EX_IOERR: a read or write failed

@@ -27,6 +27,9 @@ class OutputFile {
   void commit();
   /// The final path ("-" for stdout).
   const std::string& path() const { return path_; }
+  /// The temporary being written ("" for stdout, a device or a FIFO). Another process may
+  /// write it (turnfit-plot's gnuplot); commit() then renames what it wrote into place.
+  const std::string& temp_path() const { return tmp_; }
 
  private:
   std::string path_;
