@@ -59,6 +59,17 @@ std::string gp_quote(const std::string& s) {
   return out + "'";
 }
 
+/// A gnuplot double-quoted string literal: line breaks become "\n" (a title of two lines).
+std::string gp_dquote(const std::string& s) {
+  std::string out = "\"";
+  for (char ch : s) {
+    if (ch == '\\' || ch == '"') out += '\\', out += ch;
+    else if (ch == '\n') out += "\\n";
+    else if (ch != '\r') out += ch;
+  }
+  return out + "\"";
+}
+
 std::string num(double x) {
   if (std::isnan(x)) return "NaN";
   if (std::isinf(x)) return x > 0 ? "Inf" : "-Inf";
@@ -160,16 +171,21 @@ std::string figure_script(const Figure& fig, const std::string& data_name, const
     << "set border lc rgb '#444444'\n"
     << "set autoscale xfix\n"
     << "set offsets graph 0.01, graph 0.01, 0, 0\n";
-  if (np > 1 || !fig.title.empty()) {
+  // One panel carries the figure's title on its own first line; several share it above them.
+  const bool multi = np > 1;
+  if (multi) {
     g << "set multiplot layout " << np << ",1";
-    if (!fig.title.empty()) g << " title " << gp_quote(fig.title);
+    if (!fig.title.empty()) g << " title " << gp_quote(fig.title) << " font ',13'";
     g << "\n";
   }
   for (size_t p = 0; p < np; ++p) {
     const Panel pan = p < fig.panels.size() ? fig.panels[p] : Panel{};
     g << "# panel " << p + 1 << "\n"
       << "unset arrow\nunset label\n"
-      << "set title " << gp_quote(pan.title) << "\n"
+      << "set title "
+      << (!multi && !fig.title.empty() ? gp_dquote(fig.title + (pan.title.empty() ? "" : "\n" + pan.title))
+                                       : gp_quote(pan.title))
+      << "\n"
       << "set xlabel " << gp_quote(pan.xlabel) << "\n"
       << "set ylabel " << gp_quote(pan.ylabel) << "\n";
     auto bound = [](double v) { return std::isnan(v) ? std::string("*") : num(v); };
@@ -215,7 +231,7 @@ std::string figure_script(const Figure& fig, const std::string& data_name, const
     for (size_t i = 0; i < clauses.size(); ++i) g << (i ? ", \\\n     " : "") << clauses[i];
     g << "\n";
   }
-  if (np > 1 || !fig.title.empty()) g << "unset multiplot\n";
+  if (multi) g << "unset multiplot\n";
   g << "set output\n";
   return g.str();
 }
@@ -397,12 +413,13 @@ RenderResult render_figure(const Figure& fig, const RenderOptions& o) {
   script.commit();
   img.commit();
   res.image = image;
+  res.log = log;
   if (to_stdout) {
     std::ifstream in(image, std::ios::binary);
     std::cout << in.rdbuf();
     std::cout.flush();
     if (!std::cout) throw Error(ExitCode::io, "<stdout>: write error");
-    res = RenderResult{"-", "", ""};
+    res = RenderResult{"-", "", "", log};
   }
   return res;
 }

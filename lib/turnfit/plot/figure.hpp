@@ -88,6 +88,7 @@ struct RenderOptions {
 /// The paths a render wrote (empty when not written).
 struct RenderResult {
   std::string image, data, script;
+  std::string log;  ///< what gnuplot printed (warnings; empty when it had nothing to say)
 };
 
 /// Writes IMAGE, and beside it IMAGE's stem + ".plot.csv" (the data) and + ".gp" (the script), all
