@@ -1,17 +1,11 @@
 // Figure data as CSV, the gnuplot script that draws it, and rendering through a gnuplot process.
 #include "turnfit/plot/figure.hpp"
 
-#include <fcntl.h>
-#include <poll.h>
-#include <spawn.h>
 #include <sys/stat.h>
-#include <sys/wait.h>
 #include <unistd.h>
 
 #include <cerrno>
-#include <chrono>
 #include <cmath>
-#include <csignal>
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
@@ -23,8 +17,7 @@
 #include "turnfit/cli/common.hpp"
 #include "turnfit/io/error.hpp"
 #include "turnfit/io/output.hpp"
-
-extern char** environ;
+#include "turnfit/io/process.hpp"
 
 namespace turnfit {
 
@@ -256,77 +249,31 @@ std::string gnuplot_program(const RenderOptions& o) {
   return "gnuplot";
 }
 
-/// Runs gnuplot on script with datafile/outfile set; returns its combined output.
+/// Runs gnuplot on script with datafile/outfile set; returns what it printed.
 /// Throws EX_UNAVAILABLE when it cannot be started, EX_SOFTWARE when it fails or hangs.
 std::string run_gnuplot(const std::string& program, const std::string& script, const std::string& data,
                         const std::string& image, double timeout_s) {
-  int fds[2];
-  if (::pipe(fds) != 0) throw Error(ExitCode::software, std::string("pipe: ") + std::strerror(errno));
-  posix_spawn_file_actions_t fa;
-  posix_spawn_file_actions_init(&fa);
-  posix_spawn_file_actions_addopen(&fa, 0, "/dev/null", O_RDONLY, 0);
-  posix_spawn_file_actions_adddup2(&fa, fds[1], 1);
-  posix_spawn_file_actions_adddup2(&fa, fds[1], 2);
-  posix_spawn_file_actions_addclose(&fa, fds[0]);
-  posix_spawn_file_actions_addclose(&fa, fds[1]);
   auto quote = [](const std::string& s) {
     std::string out = "'";
     for (char c : s) out += c == '\'' ? std::string("''") : std::string(1, c);
     return out + "'";
   };
-  const std::string setup = "datafile=" + quote(data) + "; outfile=" + quote(image);
-  std::vector<std::string> args = {program, "-e", setup, script};
-  std::vector<char*> argv;
-  for (auto& a : args) argv.push_back(a.data());
-  argv.push_back(nullptr);
-  pid_t pid = 0;
-  const int rc = program.find('/') == std::string::npos
-                     ? posix_spawnp(&pid, program.c_str(), &fa, nullptr, argv.data(), environ)
-                     : posix_spawn(&pid, program.c_str(), &fa, nullptr, argv.data(), environ);
-  posix_spawn_file_actions_destroy(&fa);
-  ::close(fds[1]);
-  if (rc != 0) {
-    ::close(fds[0]);
+  ProcessSpec spec;
+  spec.argv = {program, "-e", "datafile=" + quote(data) + "; outfile=" + quote(image), script};
+  spec.timeout_s = timeout_s;
+  spec.merge_stderr = true;
+  spec.max_output = 1u << 20;
+  const ProcessResult r = run_process(spec);
+  std::string out = r.out;
+  while (!out.empty() && (out.back() == '\n' || out.back() == ' ')) out.pop_back();
+  if (!r.started || r.exit_code == 127)
     throw Error(ExitCode::unavailable,
-                "cannot run '" + program + "': " + std::strerror(rc) +
+                "cannot run '" + program + "': " + (r.started ? out : r.spawn_error) +
                     " (turnfit-plot draws with gnuplot: install it, e.g. 'apt-get install gnuplot-nox', or name "
                     "it with --gnuplot or TURNFIT_GNUPLOT; --no-render writes the data and script without it)");
-  }
-  std::string out;
-  const auto start = std::chrono::steady_clock::now();
-  bool killed = false;
-  char buf[4096];
-  for (;;) {
-    const double left =
-        timeout_s - std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
-    if (left <= 0) {
-      ::kill(pid, SIGKILL);
-      killed = true;
-      break;
-    }
-    pollfd pfd{fds[0], POLLIN, 0};
-    const int pr = ::poll(&pfd, 1, static_cast<int>(std::min(left * 1000.0, 1000.0)) + 1);
-    if (pr < 0 && errno == EINTR) continue;
-    if (pr <= 0) continue;
-    const ssize_t n = ::read(fds[0], buf, sizeof buf);
-    if (n < 0 && errno == EINTR) continue;
-    if (n <= 0) break;
-    if (out.size() < (1u << 20)) out.append(buf, static_cast<size_t>(n));
-  }
-  ::close(fds[0]);
-  int status = 0;
-  while (::waitpid(pid, &status, 0) < 0 && errno == EINTR) {
-  }
-  if (killed)
-    throw Error(ExitCode::software, program + " did not finish within " + cli::fmt(timeout_s, 4) + " s on " + script);
-  if (WIFEXITED(status) && WEXITSTATUS(status) == 127)
-    throw Error(ExitCode::unavailable, "cannot run '" + program + "' (exit 127): " + out);
-  if (!WIFEXITED(status) || WEXITSTATUS(status) != 0) {
-    std::string why = WIFEXITED(status) ? "exit " + std::to_string(WEXITSTATUS(status))
-                                        : "signal " + std::to_string(WTERMSIG(status));
-    while (!out.empty() && (out.back() == '\n' || out.back() == ' ')) out.pop_back();
-    throw Error(ExitCode::software, program + " failed (" + why + ") on its script:\n" + out);
-  }
+  if (!r.ok())
+    throw Error(ExitCode::software, program + " failed (" + r.describe(timeout_s) + ") on its script " + script +
+                                        (out.empty() ? "" : ":\n" + out));
   return out;
 }
 
