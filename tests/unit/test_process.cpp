@@ -20,6 +20,11 @@ TEST_CASE("run_process: stdin in, stdout and stderr apart, exit status", "[proce
   CHECK(r.exit_code == 3);
   CHECK_FALSE(r.ok());
   CHECK(r.describe(0) == "exit 3");
+  s.argv = {"pwd"};
+  s.cwd = "/usr";
+  CHECK(run_process(s).out == "/usr\n");
+  s.cwd = "/nonexistent-folder";
+  CHECK_FALSE(run_process(s).started);
 }
 
 TEST_CASE("run_process: megabytes both ways without a deadlock, a child that never reads", "[process]") {

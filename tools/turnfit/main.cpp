@@ -19,6 +19,7 @@ const char* const kTools[][2] = {
     {"compare", "measured vs simulated turn radii: errors per probe, objectives, exit 0/1 like diff"},
     {"tc-fit", "rational fits of trim coil phase-shift scans: normalized field profiles"},
     {"plot", "figures (PNG, SVG) of profiles and peaks, turn separation, residuals, trim coil fits"},
+    {"nsga", "NSGA-II with constraints: threads or MPI, population log that resumes a killed run"},
 };
 
 void usage(std::ostream& os) {

@@ -74,6 +74,7 @@ ProcessResult run_process(const ProcessSpec& spec) {
   posix_spawn_file_actions_adddup2(&fa, in_r.fd, 0);
   posix_spawn_file_actions_adddup2(&fa, out_w.fd, 1);
   posix_spawn_file_actions_adddup2(&fa, spec.merge_stderr ? out_w.fd : err_w.fd, 2);
+  if (!spec.cwd.empty()) posix_spawn_file_actions_addchdir_np(&fa, spec.cwd.c_str());
   posix_spawnattr_t attr;
   posix_spawnattr_init(&attr);
   posix_spawnattr_setpgroup(&attr, 0);  // its own group: a timeout kills the shell's children too

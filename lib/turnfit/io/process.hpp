@@ -28,6 +28,7 @@ struct ProcessSpec {
   double timeout_s = 0;           ///< 0: no limit
   size_t max_output = 16u << 20;  ///< bytes kept of stdout and of stderr each
   bool merge_stderr = false;      ///< stderr into out (err stays empty)
+  std::string cwd;                ///< working folder of the child ("" = the caller's)
 };
 
 /// Runs a child in its own process group with stdin fed from spec.input and stdout/stderr
