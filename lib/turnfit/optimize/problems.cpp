@@ -285,7 +285,10 @@ class Osy : public Problem {
   static double sq(double v) { return v * v; }
 };
 
-/// Srinivas and Deb (SRN): the front is x1 = -2.5, x2 in [2.5, 14.79].
+/// Srinivas and Deb (SRN). Deb (2001) gives the Pareto set as x1 = -2.5, x2 in [2.5, 14.79]
+/// (where the objectives' gradients are opposite); the ends of the front, though, lie on the
+/// constraints: on x1 = 3 x2 - 10 towards small f1 and on the circle towards small f2. The
+/// front is the non-dominated part of all these curves.
 class Srn : public Problem {
  public:
   Srn() : Problem("SRN", {-20, -20}, {20, 20}, 2, 2) {}
@@ -296,9 +299,18 @@ class Srn : public Problem {
     return e;
   }
   std::vector<std::vector<double>> true_front(size_t npoints) const override {
+    std::vector<std::vector<double>> cand;
+    const size_t n = std::max<size_t>(5000, 20 * npoints);
+    for (double x2 : linspace(-20, 20, n)) {
+      cand.push_back({-2.5, x2});          // stationary curve
+      cand.push_back({3 * x2 - 10, x2});   // on the linear constraint
+    }
+    for (double a : linspace(0, 2 * kPi, 4 * n)) cand.push_back({15 * std::cos(a), 15 * std::sin(a)});
     std::vector<std::vector<double>> pts;
-    const double top = std::sqrt(225 - 2.5 * 2.5);
-    for (double x2 : linspace(2.5, top, std::max<size_t>(npoints, 2))) pts.push_back(evaluate({-2.5, x2}).f);
+    for (auto& x : cand) {
+      Evaluation e = evaluate(x);
+      if (constraint_violation(e.g) <= 1e-9) pts.push_back(e.f);
+    }
     return front_of(std::move(pts), npoints);
   }
   static double sq(double v) { return v * v; }
@@ -380,14 +392,22 @@ std::vector<std::vector<double>> nondominated_points(const std::vector<std::vect
   // Lexicographic order: a point can only be dominated by one before it.
   std::stable_sort(order.begin(), order.end(), [&](size_t a, size_t b) { return pts[a] < pts[b]; });
   std::vector<size_t> kept;
+  const bool two = n > 0 && pts[order[0]].size() == 2;
+  double f2min = std::numeric_limits<double>::infinity();
   for (size_t oi = 0; oi < n; ++oi) {
     const auto& p = pts[order[oi]];
     bool dominated = false;
-    for (size_t k : kept) {
-      const auto& q = pts[k];
-      bool all_le = true;
-      for (size_t d = 0; d < p.size() && all_le; ++d) all_le = q[d] <= p[d];
-      if (all_le) { dominated = true; break; }  // also drops exact duplicates
+    if (two) {
+      // Two objectives: weakly dominated iff an earlier point has f2 <= this f2.
+      dominated = !(p[1] < f2min);
+      if (!dominated) f2min = p[1];
+    } else {
+      for (size_t k : kept) {
+        const auto& q = pts[k];
+        bool all_le = true;
+        for (size_t d = 0; d < p.size() && all_le; ++d) all_le = q[d] <= p[d];
+        if (all_le) { dominated = true; break; }  // also drops exact duplicates
+      }
     }
     if (!dominated) kept.push_back(order[oi]);
   }
