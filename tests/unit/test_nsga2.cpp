@@ -208,6 +208,12 @@ TEST_CASE("crowding distance on hand-worked fronts", "[nsga2]") {
   CHECK(flat[2].crowding == Approx(0.75));
   CHECK(flat[4].crowding == 0);
 
+  // A failed evaluation's finite objectives do not count either (a log may not keep them).
+  std::vector<Individual> failed{ind({0, 4}, 0, false), ind({1, 2}, 0, false), ind({3, 1}, 0, false),
+                                 ind({4, 0}, 0, false), ind({2, 1.5}, 0, false)};
+  crowding_distance(failed, {0, 1, 2, 3, 4});
+  for (const auto& f : failed) CHECK(f.crowding == 0);
+
   Individual a = ind({0, 0}), b = ind({0, 0});
   a.rank = 0, b.rank = 1, a.crowding = 0, b.crowding = 5;
   CHECK(crowded_compare(a, b) == 1);

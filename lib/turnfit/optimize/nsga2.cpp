@@ -244,7 +244,9 @@ void crowding_distance(std::vector<Individual>& pop, const std::vector<size_t>& 
   std::vector<size_t> members;
   members.reserve(front.size());
   for (size_t i : front) {
-    bool finite = true;
+    // A failed evaluation's objectives (NaN, or partial values a log may not keep) never
+    // count, so a resumed run crowds exactly as the uninterrupted one.
+    bool finite = pop[i].ok;
     for (double v : pop[i].f) finite = finite && std::isfinite(v);
     if (finite) {
       members.push_back(i);
