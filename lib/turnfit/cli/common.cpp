@@ -92,7 +92,16 @@ nlohmann::json provenance() {
 std::string provenance_comment() {
   if (!g_have_provenance) return {};
   std::string s = "# " + g_tool + " " + kVersion + "\n# argv:";
-  for (const auto& a : g_argv) s += " " + a;
+  // A line break inside an argument must not end the comment (the rest would become data, or a
+  // gnuplot command in turnfit-plot's script): written as the two characters \n.
+  for (const auto& a : g_argv) {
+    s += ' ';
+    for (char c : a) {
+      if (c == '\n') s += "\\n";
+      else if (c == '\r') s += "\\r";
+      else s += c;
+    }
+  }
   return s + "\n";
 }
 

@@ -139,7 +139,10 @@ std::string figure_script(const Figure& fig, const std::string& data_name, const
   const int w = fig.width_px > 0 ? fig.width_px : 1000;
   const int h = fig.height_px > 0 ? fig.height_px : 60 + 320 * static_cast<int>(np);
   std::ostringstream g;
-  g << "# turnfit-plot " << fig.kind << (fig.title.empty() ? "" : ": " + fig.title) << "\n"
+  std::string one_line = fig.title;
+  for (char& c : one_line)
+    if (c == '\n' || c == '\r') c = ' ';
+  g << "# turnfit-plot " << fig.kind << (one_line.empty() ? "" : ": " + one_line) << "\n"
     << fig.notes << "# Data: " << data_name << " (k,panel,series,x,y,y_lo,y_hi,label; a series is the rows of one k).\n"
     << "# Redraw (from any folder): gnuplot " << image_name.substr(0, image_name.rfind('.')) << ".gp\n"
     << "# Other paths: gnuplot -e \"datafile='other.csv'; outfile='other.png'\" this.gp\n"
@@ -362,8 +365,19 @@ RenderResult render_figure(const Figure& fig, const RenderOptions& o) {
   res.image = image;
   res.log = log;
   if (to_stdout) {
-    std::ifstream in(image, std::ios::binary);
-    std::cout << in.rdbuf();
+    // Read the image and remove the folder before writing: a reader that goes away (SIGPIPE)
+    // must not leave the folder behind.
+    std::string bytes;
+    {
+      std::ifstream in(image, std::ios::binary);
+      std::ostringstream s;
+      s << in.rdbuf();
+      bytes = s.str();
+    }
+    std::error_code ec;
+    std::filesystem::remove_all(cleanup.dir, ec);
+    cleanup.dir.clear();
+    std::cout.write(bytes.data(), static_cast<std::streamsize>(bytes.size()));
     std::cout.flush();
     if (!std::cout) throw Error(ExitCode::io, "<stdout>: write error");
     res = RenderResult{"-", "", "", log};

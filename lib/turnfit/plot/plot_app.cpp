@@ -30,7 +30,7 @@ void add_plot_options(CLI::App& app, PlotOptions& o) {
   app.add_option("--size", o.size, "Image size W,H in pixels (default: 1000 wide, 320 high per panel)");
   app.add_option("--xrange", o.xrange, "x range MIN:MAX of every panel (a side may be empty)");
   app.add_option("--yrange", o.yrange, "y range MIN:MAX of every panel (a side may be empty)");
-  app.add_option("--probe", o.probes, "Only this probe (repeatable; default: every probe)");
+  app.add_option("--probe", o.probes, "Only this probe (repeatable; default: every probe)")->allow_extra_args(false);
   app.add_flag("--no-render", o.no_render, "Write the data and the gnuplot script only (gnuplot not needed)");
   app.add_option("--gnuplot", o.gnuplot, "The gnuplot program (default: $TURNFIT_GNUPLOT, else gnuplot on PATH)");
 
@@ -42,28 +42,28 @@ void add_plot_options(CLI::App& app, PlotOptions& o) {
   };
   CLI::App* p = sub("profile", "Probe profiles with their peaks and turn numbers, a panel per profile (paper Figs. 3-4)");
   p->add_option("profiles", o.inputs, "Profile CSVs (position_mm,intensity; '-' for stdin)")->required();
-  p->add_option("--peaks", o.peaks, "Peaks to mark (turnfit-peakfind's table; repeatable; matched by probe)");
+  p->add_option("--peaks", o.peaks, "Peaks to mark (turnfit-peakfind's table; repeatable; matched by probe)")->allow_extra_args(false);
   p->add_option("--turns", o.turns,
-                "Turns to tick under the profile (turnfit-track's turns, or any probe,turn,r_mm table; repeatable)");
-  p->add_option("--label", o.labels, "A name per --turns file (default: its file stem)");
+                "Turns to tick under the profile (turnfit-track's turns, or any probe,turn,r_mm table; repeatable)")->allow_extra_args(false);
+  p->add_option("--label", o.labels, "A name per --turns file (default: its file stem)")->allow_extra_args(false);
   p->add_option("--label-every", o.label_every, "Number every N-th turn (0: about 25 numbers a panel)")
       ->check(CLI::Range(0, 1000000));
 
   CLI::App* s = sub("separation", "Turn separation r(n) - r(n-1) per turn, a panel per probe (paper Figs. 6-7)");
   s->add_option("tables", o.inputs, "Peaks or turns tables (probe,turn,r_mm; '-' for stdin)")->required();
-  s->add_option("--label", o.labels, "A name per table (default: its file stem)");
+  s->add_option("--label", o.labels, "A name per table (default: its file stem)")->allow_extra_args(false);
 
   CLI::App* r = sub("residuals", "Residual per turn, a panel per probe, a series per model (paper Figs. 18-19)");
   r->add_option("residuals", o.inputs, "turnfit-compare --residuals tables ('-' for stdin)")->required();
-  r->add_option("--label", o.labels, "A name per table (default: its file stem)");
+  r->add_option("--label", o.labels, "A name per table (default: its file stem)")->allow_extra_args(false);
   r->add_option("--objectives", o.objectives, "Mark these turn groups (turnfit-compare's --objectives spec)");
   r->add_option("--tol", o.tol_mm, "Draw lines at +-TOL mm")->check(CLI::Range(0.0, 1e6));
 
   CLI::App* t = sub("trimcoils", "Trim coil fits: phase shifts with their scans, and field shapes (paper Figs. 8-9)");
   t->add_option("fits", o.inputs, "turnfit-tc-fit --format csv outputs ('-' for stdin)")->required();
-  t->add_option("--label", o.labels, "A name per fit file (default: its file stem)");
-  t->add_option("--phase", o.phase, "The phase-shift scans (tc-fit's inputs; repeatable)");
-  t->add_option("--coil", o.coils, "Only this coil (repeatable)");
+  t->add_option("--label", o.labels, "A name per fit file (default: its file stem)")->allow_extra_args(false);
+  t->add_option("--phase", o.phase, "The phase-shift scans (tc-fit's inputs; repeatable)")->allow_extra_args(false);
+  t->add_option("--coil", o.coils, "Only this coil (repeatable)")->allow_extra_args(false);
 }
 
 namespace {
@@ -393,6 +393,30 @@ Figure residuals_figure(const PlotOptions& o) {
     }
   }
   if (fig.panels.empty()) throw usage_error("no residuals left to draw (check --probe and the tables)");
+  // Group boundaries outside the turns drawn would be drawn outside the frame: dropped (a
+  // group's name moves to its other boundary if that one stays).
+  for (size_t p = 0; p < fig.panels.size(); ++p) {
+    double lo = INFINITY, hi = -INFINITY;
+    for (const auto& s : fig.series)
+      if (s.panel == static_cast<int>(p))
+        for (double x : s.x) lo = std::min(lo, x), hi = std::max(hi, x);
+    std::vector<RefLine> kept;
+    std::string pending;
+    for (RefLine l : fig.panels[p].lines) {
+      if (!l.vertical) {
+        kept.push_back(l);
+        continue;
+      }
+      if (!(l.at > lo && l.at < hi)) {
+        if (!l.text.empty()) pending = l.text;
+        continue;
+      }
+      if (l.text.empty() && !pending.empty()) l.text = pending;
+      pending.clear();
+      kept.push_back(l);
+    }
+    fig.panels[p].lines = kept;
+  }
   // Titles carry the largest residual of every model: what the objectives judge.
   for (size_t p = 0; p < fig.panels.size(); ++p) {
     std::string title = panel_probe[p] + ": max |dr|";
@@ -561,8 +585,13 @@ int run_plot(const PlotOptions& o) {
   r.gnuplot = o.gnuplot;
   r.quiet = o.common.quiet;
   for (const auto* list : {&o.inputs, &o.peaks, &o.turns, &o.phase}) r.inputs.insert(r.inputs.end(), list->begin(), list->end());
-  if (!o.image_format.empty()) r.format = o.image_format == "svg" ? ImageFormat::svg : ImageFormat::png;
-  else if (!image_format_from_path(r.image, &r.format)) r.format = ImageFormat::png;
+  if (!o.image_format.empty()) {
+    r.format = o.image_format == "svg" ? ImageFormat::svg : ImageFormat::png;
+  } else if (!image_format_from_path(r.image, &r.format)) {
+    r.format = ImageFormat::png;
+    if (r.image != "-")
+      cli::warn(o.common, r.image + ": neither .png nor .svg: writing PNG (--format svg for SVG)");
+  }
   if (r.image == "-" && r.render && ::isatty(1))
     throw usage_error("will not write an image to a terminal: give -o FILE.png or -o FILE.svg (or pipe it)");
   if (!o.size.empty()) {
