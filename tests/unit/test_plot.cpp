@@ -335,3 +335,29 @@ TEST_CASE("render with gnuplot: every figure kind draws without a warning, and t
   for (const auto& e : std::filesystem::directory_iterator(tmp.path))
     CHECK(e.path().string().find(".tmp.") == std::string::npos);
 }
+
+TEST_CASE("front figure: two chosen objectives of each front, a built-in's true front beneath", "[plot]") {
+  TempDir tmp;
+  PlotOptions o;
+  o.kind = "front";
+  o.inputs = {tmp.file("a.json", R"([{"id": 3, "x": [0.1], "f": [0.1, 0.7, 5], "violation": 0},
+                                     {"id": 9, "x": [0.4], "f": [0.4, 0.3, 6], "violation": 0}])")};
+  o.axes = "1,3";
+  o.true_front = "dtlz2";
+  Figure f = build_figure(o);
+  REQUIRE(f.series.size() == 2);
+  CHECK(f.series[0].name == "DTLZ2 true front");
+  CHECK(f.series[0].x.size() > 100);
+  CHECK(f.series[1].x == std::vector<double>{0.1, 0.4});
+  CHECK(f.series[1].y == std::vector<double>{5, 6});
+  o.true_front = "zdt1";  // two objectives: axis 3 does not exist
+  CHECK(test::error_code([&] { build_figure(o); }) == 64);
+  o.true_front.clear();
+  o.axes = "2,2";
+  CHECK(test::error_code([&] { build_figure(o); }) == 64);
+  o.axes = "1,2";
+  o.inputs = {tmp.file("b.json", R"({"f": [1, 2]})")};
+  std::string msg;
+  CHECK(test::error_code([&] { build_figure(o); }, &msg) == 65);
+  CHECK(msg.find("b.json") != std::string::npos);
+}

@@ -4,6 +4,12 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <cerrno>
+#include <cstring>
+#include <fstream>
+#include <iostream>
+#include <nlohmann/json.hpp>
+#include <sstream>
 #include <climits>
 #include <cmath>
 #include <filesystem>
@@ -13,6 +19,7 @@
 #include "turnfit/io/csv.hpp"
 #include "turnfit/io/error.hpp"
 #include "turnfit/metrics/metrics.hpp"
+#include "turnfit/optimize/problems.hpp"
 #include "turnfit/peaks/peaks.hpp"
 
 namespace turnfit {
@@ -21,7 +28,7 @@ void add_plot_options(CLI::App& app, PlotOptions& o) {
   app.description(
       "Figures from turnfit's tables, drawn by gnuplot (PNG or SVG). Beside IMAGE it writes\n"
       "IMAGE's stem + .plot.csv (the data) and + .gp (the script): 'gnuplot STEM.gp' redraws the figure,\n"
-      "edit the script to restyle it. Kinds: profile, separation, residuals, trimcoils.");
+      "edit the script to restyle it. Kinds: profile, separation, residuals, trimcoils, front.");
   app.require_subcommand(1, 1);
   cli::add_common_options(app, o.common, cli::kOutput);
   app.add_option("--format", o.image_format, "Image format (default: by -o's extension, else png)")
@@ -64,6 +71,12 @@ void add_plot_options(CLI::App& app, PlotOptions& o) {
   t->add_option("--label", o.labels, "A name per fit file (default: its file stem)")->allow_extra_args(false);
   t->add_option("--phase", o.phase, "The phase-shift scans (tc-fit's inputs; repeatable)")->allow_extra_args(false);
   t->add_option("--coil", o.coils, "Only this coil (repeatable)")->allow_extra_args(false);
+
+  CLI::App* f = sub("front", "Non-dominated fronts of turnfit-nsga in the plane of two objectives");
+  f->add_option("fronts", o.inputs, "turnfit-nsga --front files ('-' for stdin)")->required();
+  f->add_option("--label", o.labels, "A name per front (default: its file stem)")->allow_extra_args(false);
+  f->add_option("--axes", o.axes, "The two objectives drawn, 1-based")->capture_default_str();
+  f->add_option("--true-front", o.true_front, "Draw this built-in problem's true front (ZDT1, TNK, ...)");
 }
 
 namespace {
@@ -570,12 +583,96 @@ Figure trimcoils_figure(const PlotOptions& o) {
   return fig;
 }
 
+Figure front_figure(const PlotOptions& o) {
+  check_stdin_once({&o.inputs});
+  check_labels(o, o.inputs.size(), "fronts");
+  int a = 0, b = 0;
+  char tail = 0;
+  if (std::sscanf(o.axes.c_str(), "%d,%d%c", &a, &b, &tail) != 2 || a < 1 || b < 1 || a == b)
+    throw usage_error("--axes '" + o.axes + "': expected two different objective numbers I,J (from 1)");
+  const size_t ia = static_cast<size_t>(a - 1), ib = static_cast<size_t>(b - 1);
+  Figure fig;
+  fig.kind = "front";
+  fig.title = o.title;
+  Panel pan;
+  pan.xlabel = "f" + std::to_string(a);
+  pan.ylabel = "f" + std::to_string(b);
+  fig.panels.push_back(pan);
+  if (!o.true_front.empty()) {
+    const auto problem = make_problem(o.true_front);
+    if (std::max(ia, ib) >= problem->n_objectives())
+      throw usage_error("--axes " + o.axes + ": " + problem->name() + " has " +
+                        std::to_string(problem->n_objectives()) + " objectives");
+    std::vector<std::vector<double>> tf = problem->true_front(problem->n_objectives() > 2 ? 2000 : 500);
+    if (tf.empty()) throw usage_error("--true-front " + o.true_front + ": its true front is not known");
+    std::sort(tf.begin(), tf.end(), [&](const auto& p, const auto& q) { return p[ia] < q[ia]; });
+    Series t;
+    t.name = problem->name() + " true front";
+    t.style = SeriesStyle::points;
+    t.color = -1;
+    t.point = 7;
+    t.size = 0.4;
+    for (const auto& p : tf) {
+      t.x.push_back(p[ia]);
+      t.y.push_back(p[ib]);
+    }
+    fig.series.push_back(std::move(t));
+  }
+  for (size_t k = 0; k < o.inputs.size(); ++k) {
+    const std::string& file = o.inputs[k];
+    const std::string name = file == "-" ? "<stdin>" : file;
+    std::string text;
+    if (file == "-") {
+      std::ostringstream ss;
+      ss << std::cin.rdbuf();
+      text = ss.str();
+    } else {
+      std::ifstream in(file, std::ios::binary);
+      if (!in) throw open_error(file, std::strerror(errno));
+      std::ostringstream ss;
+      ss << in.rdbuf();
+      text = ss.str();
+    }
+    nlohmann::json j;
+    try {
+      j = nlohmann::json::parse(text);
+    } catch (const nlohmann::json::parse_error& e) {
+      throw data_error(name, 0, std::string("not JSON: ") + e.what());
+    }
+    if (!j.is_array()) throw data_error(name, 0, "a front is a JSON array of {\"id\", \"x\", \"f\", \"violation\"}");
+    Series s;
+    s.name = label_of(o, o.inputs, k);
+    s.style = SeriesStyle::points;
+    s.color = static_cast<int>(k);
+    s.point = k % 2 ? 6 : 7;
+    for (size_t i = 0; i < j.size(); ++i) {
+      const auto& e = j[i];
+      if (!e.is_object() || !e.contains("f") || !e["f"].is_array())
+        throw data_error(name, 0, "entry " + std::to_string(i) + ": expected an object with an \"f\" array");
+      const auto& f = e["f"];
+      if (std::max(ia, ib) >= f.size())
+        throw usage_error("--axes " + o.axes + ": " + name + " has " + std::to_string(f.size()) + " objectives");
+      if (!f[ia].is_number() || !f[ib].is_number())
+        throw data_error(name, 0, "entry " + std::to_string(i) + ": \"f\" holds a non-number");
+      s.x.push_back(f[ia].get<double>());
+      s.y.push_back(f[ib].get<double>());
+    }
+    if (s.x.empty()) cli::warn(o.common, name + ": an empty front");
+    fig.series.push_back(std::move(s));
+  }
+  fig.width_px = 800;
+  fig.height_px = 640;
+  apply_ranges(o, fig);
+  return fig;
+}
+
 Figure build_figure(const PlotOptions& o) {
   if (o.kind == "profile") return profile_figure(o);
   if (o.kind == "separation") return separation_figure(o);
   if (o.kind == "residuals") return residuals_figure(o);
   if (o.kind == "trimcoils") return trimcoils_figure(o);
-  throw usage_error("unknown figure '" + o.kind + "' (profile, separation, residuals, trimcoils)");
+  if (o.kind == "front") return front_figure(o);
+  throw usage_error("unknown figure '" + o.kind + "' (profile, separation, residuals, trimcoils, front)");
 }
 
 int run_plot(const PlotOptions& o) {

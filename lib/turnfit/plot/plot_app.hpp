@@ -28,6 +28,8 @@ struct PlotOptions {
   std::string title;                    ///< figure title (default: none)
   std::string size;                     ///< "W,H" in pixels (default: 1000 x 320 per panel)
   int label_every = 0;                  ///< profile: number every N-th turn (0: about 25 a panel)
+  std::string true_front;               ///< front: a built-in problem whose true front to draw
+  std::string axes = "1,2";             ///< front: the two objectives drawn (1-based)
   std::string image_format;             ///< --format: png or svg ("": by -o's extension, else png)
   bool no_render = false;               ///< write the data and script only
   std::string gnuplot;                  ///< --gnuplot program
@@ -48,6 +50,10 @@ Figure residuals_figure(const PlotOptions& o);
 /// Trim coil fits (tc-fit's csv): the fitted phase shift with the scans and its 1-sigma band,
 /// and the normalized field shapes (paper Figs. 8-9).
 Figure trimcoils_figure(const PlotOptions& o);
+
+/// Fronts of turnfit-nsga (front.json) in the plane of two objectives, with a built-in
+/// problem's true front for reference.
+Figure front_figure(const PlotOptions& o);
 
 /// The figure the options ask for (by kind).
 Figure build_figure(const PlotOptions& o);
