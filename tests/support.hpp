@@ -2,7 +2,10 @@
 #pragma once
 
 #include <cstdlib>
+#include <filesystem>
+#include <fstream>
 #include <functional>
+#include <stdexcept>
 #include <string>
 #include <sys/stat.h>
 
@@ -38,6 +41,28 @@ inline int error_code(const std::function<void()>& f, std::string* msg = nullptr
   }
   return 0;
 }
+
+/// A fresh folder under /tmp, removed with everything in it when the object goes.
+struct TempDir {
+  std::string path;
+  TempDir() {
+    char name[] = "/tmp/turnfit-test.XXXXXX";
+    if (!::mkdtemp(name)) throw std::runtime_error("mkdtemp failed");
+    path = name;
+  }
+  ~TempDir() {
+    std::error_code ec;
+    std::filesystem::remove_all(path, ec);
+  }
+  TempDir(const TempDir&) = delete;
+  TempDir& operator=(const TempDir&) = delete;
+  /// Writes text to name inside the folder; returns its path.
+  std::string file(const std::string& name, const std::string& text) const {
+    const std::string p = path + "/" + name;
+    std::ofstream(p) << text;
+    return p;
+  }
+};
 
 }  // namespace turnfit::test
 

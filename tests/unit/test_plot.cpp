@@ -18,24 +18,7 @@ using namespace turnfit;
 
 namespace {
 
-/// A fresh folder, removed with the object.
-struct TempDir {
-  std::string path;
-  TempDir() {
-    char name[] = "/tmp/turnfit-test-plot.XXXXXX";
-    REQUIRE(::mkdtemp(name));
-    path = name;
-  }
-  ~TempDir() {
-    std::error_code ec;
-    std::filesystem::remove_all(path, ec);
-  }
-  std::string file(const std::string& name, const std::string& text) const {
-    const std::string p = path + "/" + name;
-    std::ofstream(p) << text;
-    return p;
-  }
-};
+using test::TempDir;
 
 bool exists(const std::string& p) { return std::filesystem::exists(p); }
 

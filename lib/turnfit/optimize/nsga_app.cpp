@@ -19,6 +19,7 @@
 
 #include "turnfit/io/error.hpp"
 #include "turnfit/io/output.hpp"
+#include "turnfit/io/text.hpp"
 #include "turnfit/optimize/mpi.hpp"
 
 namespace turnfit {
@@ -205,14 +206,7 @@ nlohmann::json front_json(const std::vector<Individual>& front, const std::vecto
 
 namespace {
 
-std::string read_whole(const std::string& path) {
-  std::ifstream in(path, std::ios::binary);
-  if (!in) throw open_error(path, std::strerror(errno));
-  std::ostringstream s;
-  s << in.rdbuf();
-  if (in.bad()) throw Error(ExitCode::io, path + ": read error");
-  return s.str();
-}
+std::string read_whole(const std::string& path) { return read_input(path).text; }
 
 /// The run record: what a resumed run must match.
 nlohmann::json run_record(const NsgaOptions& o, const LoadedProblem& lp, bool provenance) {

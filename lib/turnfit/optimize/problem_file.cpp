@@ -14,6 +14,7 @@
 
 #include "turnfit/cli/common.hpp"
 #include "turnfit/io/error.hpp"
+#include "turnfit/io/json.hpp"
 #include "turnfit/io/process.hpp"
 
 namespace turnfit {
@@ -222,26 +223,9 @@ LoadedProblem load_problem(const std::string& name_or_file, const std::string& e
   }
   if (n_variables || n_objectives)
     throw usage_error("--variables and --objectives size the built-in problems only, not " + name_or_file);
-  std::string text;
-  if (name_or_file == "-") {
-    std::ostringstream s;
-    s << std::cin.rdbuf();
-    text = s.str();
-  } else {
-    std::ifstream in(name_or_file, std::ios::binary);
-    if (!in) throw open_error(name_or_file, std::strerror(errno));
-    std::ostringstream s;
-    s << in.rdbuf();
-    text = s.str();
-  }
   const std::string file = name_or_file == "-" ? "<stdin>" : name_or_file;
   FileReader rd{file};
-  nlohmann::json j;
-  try {
-    j = nlohmann::json::parse(text);
-  } catch (const nlohmann::json::parse_error& e) {
-    throw data_error(file, 0, std::string("not JSON: ") + e.what());
-  }
+  const nlohmann::json j = read_json(name_or_file);
   if (!j.is_object()) throw data_error(file, 0, "a problem file is a JSON object");
   static const std::set<std::string> known = {"format", "name", "variables", "objectives", "constraints",
                                               "evaluator", "reference", "description"};

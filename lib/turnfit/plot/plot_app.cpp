@@ -18,6 +18,7 @@
 
 #include "turnfit/io/csv.hpp"
 #include "turnfit/io/error.hpp"
+#include "turnfit/io/json.hpp"
 #include "turnfit/metrics/metrics.hpp"
 #include "turnfit/optimize/problems.hpp"
 #include "turnfit/peaks/peaks.hpp"
@@ -621,24 +622,7 @@ Figure front_figure(const PlotOptions& o) {
   for (size_t k = 0; k < o.inputs.size(); ++k) {
     const std::string& file = o.inputs[k];
     const std::string name = file == "-" ? "<stdin>" : file;
-    std::string text;
-    if (file == "-") {
-      std::ostringstream ss;
-      ss << std::cin.rdbuf();
-      text = ss.str();
-    } else {
-      std::ifstream in(file, std::ios::binary);
-      if (!in) throw open_error(file, std::strerror(errno));
-      std::ostringstream ss;
-      ss << in.rdbuf();
-      text = ss.str();
-    }
-    nlohmann::json j;
-    try {
-      j = nlohmann::json::parse(text);
-    } catch (const nlohmann::json::parse_error& e) {
-      throw data_error(name, 0, std::string("not JSON: ") + e.what());
-    }
+    const nlohmann::json j = read_json(file);
     if (!j.is_array()) throw data_error(name, 0, "a front is a JSON array of {\"id\", \"x\", \"f\", \"violation\"}");
     Series s;
     s.name = label_of(o, o.inputs, k);
