@@ -228,7 +228,9 @@ nlohmann::json run_record(const NsgaOptions& o, const LoadedProblem& lp, bool pr
   j["crossover_probability"] = s.crossover_probability;
   j["eta_c"] = s.eta_c;
   j["crossover_variable_probability"] = s.crossover_variable_probability;
-  j["mutation_probability"] = s.mutation_probability;
+  // The probability used (the default -1 means 1/n).
+  j["mutation_probability"] =
+      s.mutation_probability < 0 ? 1.0 / static_cast<double>(p.n_variables()) : s.mutation_probability;
   j["eta_m"] = s.eta_m;
   return j;
 }
@@ -295,11 +297,15 @@ int run_nsga(const NsgaOptions& o) {
   std::set<size_t> logged_generations;
   std::string out_path = o.common.output.empty() ? "-" : o.common.output;
   bool append = false;
+  bool fresh = o.resume.empty();
   if (!o.resume.empty()) {
     const std::string text = read_whole(o.resume);
     log = parse_population_log(text, o.resume, names);
-    if (log.run.is_null()) throw data_error(o.resume, 0, "no \"run\" record: not a turnfit-nsga population log");
-    check_same_run(log.run, run, o.resume);
+    // A run killed before its run record was complete left nothing to resume: start afresh.
+    fresh = log.run.is_null() && log.evaluated.empty();
+    if (log.run.is_null() && !fresh)
+      throw data_error(o.resume, 0, "no \"run\" record: not a turnfit-nsga population log");
+    if (!fresh) check_same_run(log.run, run, o.resume);
     // Generations the log already reports (their records are not written twice).
     std::istringstream in(text.substr(0, log.valid_bytes));
     std::string line;
@@ -331,14 +337,12 @@ int run_nsga(const NsgaOptions& o) {
     if (!file) throw Error(ExitCode::cant_create, out_path + ": cannot open: " + std::strerror(errno));
     out = &file;
   }
-  if (!append) {
-    if (!o.resume.empty()) {
-      // A new file continues the old one: its records first.
-      const std::string text = read_whole(o.resume);
-      *out << text.substr(0, log.valid_bytes);
-    } else {
-      *out << run.dump() << "\n";
-    }
+  if (fresh) {
+    *out << run.dump() << "\n";
+    out->flush();
+  } else if (!append) {
+    // A new file continues the old one: its records first.
+    *out << read_whole(o.resume).substr(0, log.valid_bytes);
     out->flush();
   }
   bool write_failed = !*out;
