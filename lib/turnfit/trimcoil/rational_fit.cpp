@@ -2,6 +2,7 @@
 #include "turnfit/trimcoil/rational_fit.hpp"
 
 #include <ceres/ceres.h>
+#include <glog/logging.h>
 
 #include <algorithm>
 #include <complex>
@@ -9,6 +10,7 @@
 #include <cstdio>
 #include <cmath>
 #include <limits>
+#include <mutex>
 
 #include "turnfit/io/error.hpp"
 #include "turnfit/trimcoil/trimcoil.hpp"
@@ -293,8 +295,21 @@ std::vector<double> linearized_start(const Model& md, const std::vector<double>&
   return best;
 }
 
+/// Ceres logs through glog, and some of its lines (a minimizer giving up after refused steps:
+/// an expected outcome here, reported by the fit's own result) ignore logging_type = SILENT. A
+/// tool's stderr is its own: glog is initialized once and told to print only fatal errors.
+void quiet_ceres_logging() {
+  static std::once_flag once;
+  std::call_once(once, [] {
+    FLAGS_minloglevel = google::GLOG_FATAL;
+    FLAGS_logtostderr = true;
+    if (!google::IsGoogleLoggingInitialized()) google::InitGoogleLogging("turnfit");
+  });
+}
+
 Trial solve(const Model& md, const std::vector<double>& y, const std::vector<double>& guard, double min_pole,
             std::vector<double> theta, const std::string& start, int max_iterations) {
+  quiet_ceres_logging();
   Trial t;
   t.start = start;
   if (!feasible(theta, md.n, md.m, guard, min_pole)) return t;
