@@ -680,8 +680,10 @@ nlohmann::json tcfit_report(const std::vector<CoilFit>& fits, const TcFitOptions
     sc["half_width_mm"] = f.half_width;
     sc["a"] = f.a;
     sc["b"] = f.b;
-    sc["describes"] = f.model == RationalModel::value ? "y = f/g" : "y = c - integral_{-1}^{x} f/g dx'";
-    if (f.model == RationalModel::integral) {
+    sc["describes"] = f.model == RationalModel::value      ? "y = f/g"
+                      : f.model == RationalModel::integral ? "y = c - integral_{-1}^{x} f/g dx'"
+                                                           : "y_i = c + sum_j K_ij (f/g)(x_j)";
+    if (f.model != RationalModel::value) {  // both fit a constant c, the last parameter
       sc["c"] = f.offset;
       sc["sigma_c"] = finite_or_null(f.sigma.back());
     }
