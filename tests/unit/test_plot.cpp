@@ -190,6 +190,7 @@ TEST_CASE("residuals figure: sorted by turn, worst turn in the title, tolerance 
   CHECK(vertical == 2);    // the inner ends only: 8.5 and 182.5 lie outside the turns drawn
   CHECK(f.panels[0].lines.back().text == "RRL:11-182:linf");
   CHECK(f.panels[0].lines[3].text == "RRL:9-10:linf");  // moved from the dropped 8.5
+  CHECK(f.panels[0].lines[3].text_left);
   o.inputs = {tmp.file("bad.csv", "probe,turn,r_mm\nRRL,9,1\n")};
   std::string msg;
   CHECK(test::error_code([&] { build_figure(o); }, &msg) == 65);

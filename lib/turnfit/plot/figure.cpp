@@ -199,8 +199,8 @@ std::string figure_script(const Figure& fig, const std::string& data_name, const
         g << "set arrow from " << num(l.at) << ", graph 0 to " << num(l.at) << ", graph 1 nohead dt "
           << 1 + l.dash << " lc rgb '#888888'\n";
         if (!l.text.empty())
-          g << "set label " << tag++ << " " << gp_quote(l.text) << " at " << num(l.at)
-            << ", graph 0.97 offset 0.3,0 font ',8' tc rgb '#666666'\n";
+          g << "set label " << tag++ << " " << gp_quote(l.text) << " at " << num(l.at) << ", graph 0.97 "
+            << (l.text_left ? "right offset -0.3,0" : "offset 0.3,0") << " font ',8' tc rgb '#666666'\n";
       } else {
         hlines.push_back("(" + num(l.at) + ") with lines dt " + std::to_string(1 + l.dash) + " lc rgb '#888888' " +
                          (l.text.empty() ? "notitle" : "title " + gp_quote(l.text)));

@@ -39,6 +39,7 @@ struct RefLine {
   double at = 0;
   std::string text;        ///< written beside the line ("" = none)
   int dash = 1;
+  bool text_left = false;  ///< vertical lines: text to the left of the line (right-aligned)
 };
 
 /// One plot area; panels are stacked top to bottom and share nothing but the figure.

@@ -425,7 +425,10 @@ Figure residuals_figure(const PlotOptions& o) {
         if (!l.text.empty()) pending = l.text;
         continue;
       }
-      if (l.text.empty() && !pending.empty()) l.text = pending;
+      if (l.text.empty() && !pending.empty()) {
+        l.text = pending;  // the group's end: its name goes left of the line, inside the group
+        l.text_left = true;
+      }
       pending.clear();
       kept.push_back(l);
     }
