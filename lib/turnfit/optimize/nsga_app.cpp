@@ -2,7 +2,6 @@
 // also the checkpoint, exact resume, the final front, and progress on stderr.
 #include "turnfit/optimize/nsga_app.hpp"
 
-#include <sys/stat.h>
 #include <unistd.h>
 
 #include <cerrno>
@@ -14,8 +13,6 @@
 #include <iostream>
 #include <limits>
 #include <memory>
-#include <set>
-#include <sstream>
 
 #include "turnfit/io/error.hpp"
 #include "turnfit/io/output.hpp"
@@ -188,7 +185,11 @@ PopulationLog parse_population_log(const std::string& text, const std::string& n
         throw data_error(name, line_no, std::string("bad \"eval\" record: ") + e.what());
       }
       log.evaluated.push_back(std::move(ind));
-    } else if (kind != "generation") {
+    } else if (kind == "generation") {
+      // Only its number matters to a resume (its record is not written twice).
+      auto gen = j.find("gen");
+      if (gen != j.end() && gen->is_number_unsigned()) log.generations.insert(gen->get<size_t>());
+    } else {
       throw data_error(name, line_no, "unknown record \"" + kind + "\"");
     }
     pos = next;
@@ -205,8 +206,6 @@ nlohmann::json front_json(const std::vector<Individual>& front, const std::vecto
 }
 
 namespace {
-
-std::string read_whole(const std::string& path) { return read_input(path).text; }
 
 /// The run record: what a resumed run must match.
 nlohmann::json run_record(const NsgaOptions& o, const LoadedProblem& lp, bool provenance) {
@@ -294,28 +293,18 @@ int run_nsga(const NsgaOptions& o) {
 
   // Resume: the log's records, checked against this run.
   PopulationLog log;
-  std::set<size_t> logged_generations;
+  std::string resume_text;
   std::string out_path = o.common.output.empty() ? "-" : o.common.output;
   bool append = false;
   bool fresh = o.resume.empty();
   if (!o.resume.empty()) {
-    const std::string text = read_whole(o.resume);
-    log = parse_population_log(text, o.resume, names);
+    resume_text = read_input(o.resume).text;
+    log = parse_population_log(resume_text, o.resume, names);
     // A run killed before its run record was complete left nothing to resume: start afresh.
     fresh = log.run.is_null() && log.evaluated.empty();
     if (log.run.is_null() && !fresh)
       throw data_error(o.resume, 0, "no \"run\" record: not a turnfit-nsga population log");
     if (!fresh) check_same_run(log.run, run, o.resume);
-    // Generations the log already reports (their records are not written twice).
-    std::istringstream in(text.substr(0, log.valid_bytes));
-    std::string line;
-    while (std::getline(in, line))
-      if (line.find("\"record\":\"generation\"") != std::string::npos) {
-        try {
-          logged_generations.insert(nlohmann::json::parse(line).at("gen").get<size_t>());
-        } catch (const nlohmann::json::exception&) {
-        }
-      }
     std::error_code ec;
     if (out_path == "-" || std::filesystem::equivalent(out_path, o.resume, ec)) {
       out_path = o.resume;
@@ -342,7 +331,7 @@ int run_nsga(const NsgaOptions& o) {
     out->flush();
   } else if (!append) {
     // A new file continues the old one: its records first.
-    *out << read_whole(o.resume).substr(0, log.valid_bytes);
+    out->write(resume_text.data(), static_cast<std::streamsize>(log.valid_bytes));
     out->flush();
   }
   bool write_failed = !*out;
@@ -359,7 +348,7 @@ int run_nsga(const NsgaOptions& o) {
   bool printed = false;
   std::chrono::steady_clock::time_point last_print;
   cb.on_generation = [&](const Nsga2Progress& p) {
-    if (!logged_generations.count(p.generation) && !write_failed) {
+    if (!log.generations.count(p.generation) && !write_failed) {
       nlohmann::json g;
       g["record"] = "generation";
       g["gen"] = p.generation;

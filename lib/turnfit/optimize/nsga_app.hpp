@@ -5,6 +5,7 @@
 #include <CLI/CLI.hpp>
 #include <istream>
 #include <ostream>
+#include <set>
 #include <string>
 #include <vector>
 
@@ -35,6 +36,7 @@ void add_nsga_options(CLI::App& app, NsgaOptions& o);
 struct PopulationLog {
   nlohmann::json run;                ///< the "run" record (null if the log has none)
   std::vector<Individual> evaluated; ///< every "eval" record, in file order
+  std::set<size_t> generations;      ///< the generations a "generation" record reports
   size_t valid_bytes = 0;            ///< length of the complete, valid records (a torn last line is cut)
   bool torn_tail = false;            ///< the last line was incomplete (a killed run)
 };

@@ -10,7 +10,6 @@
 #include <cstdlib>
 #include <cstring>
 #include <filesystem>
-#include <fstream>
 #include <iostream>
 #include <sstream>
 
@@ -18,6 +17,7 @@
 #include "turnfit/io/error.hpp"
 #include "turnfit/io/output.hpp"
 #include "turnfit/io/process.hpp"
+#include "turnfit/io/text.hpp"
 
 namespace turnfit {
 
@@ -256,13 +256,8 @@ std::string gnuplot_program(const RenderOptions& o) {
 /// Throws EX_UNAVAILABLE when it cannot be started, EX_SOFTWARE when it fails or hangs.
 std::string run_gnuplot(const std::string& program, const std::string& script, const std::string& data,
                         const std::string& image, double timeout_s) {
-  auto quote = [](const std::string& s) {
-    std::string out = "'";
-    for (char c : s) out += c == '\'' ? std::string("''") : std::string(1, c);
-    return out + "'";
-  };
   ProcessSpec spec;
-  spec.argv = {program, "-e", "datafile=" + quote(data) + "; outfile=" + quote(image), script};
+  spec.argv = {program, "-e", "datafile=" + gp_quote(data) + "; outfile=" + gp_quote(image), script};
   spec.timeout_s = timeout_s;
   spec.merge_stderr = true;
   spec.max_output = 1u << 20;
@@ -367,13 +362,7 @@ RenderResult render_figure(const Figure& fig, const RenderOptions& o) {
   if (to_stdout) {
     // Read the image and remove the folder before writing: a reader that goes away (SIGPIPE)
     // must not leave the folder behind.
-    std::string bytes;
-    {
-      std::ifstream in(image, std::ios::binary);
-      std::ostringstream s;
-      s << in.rdbuf();
-      bytes = s.str();
-    }
+    const std::string bytes = read_input(image).text;
     std::error_code ec;
     std::filesystem::remove_all(cleanup.dir, ec);
     cleanup.dir.clear();

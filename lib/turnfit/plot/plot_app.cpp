@@ -4,16 +4,13 @@
 #include <unistd.h>
 
 #include <algorithm>
-#include <cerrno>
-#include <cstring>
-#include <fstream>
-#include <iostream>
-#include <nlohmann/json.hpp>
-#include <sstream>
 #include <climits>
 #include <cmath>
+#include <cstdio>
+#include <cstdlib>
 #include <filesystem>
 #include <map>
+#include <nlohmann/json.hpp>
 #include <set>
 
 #include "turnfit/io/csv.hpp"
@@ -164,30 +161,6 @@ int auto_stride(size_t n, size_t target) {
   return static_cast<int>((n + target - 1) / target);
 }
 
-/// The rows of a probe,turn,r_mm[,flag] table, by probe.
-struct TurnRow {
-  int turn = 0;
-  double r_mm = 0;
-  std::string flag;
-};
-std::map<std::string, std::vector<TurnRow>> read_turn_rows(const std::string& path) {
-  const CsvTable t = CsvTable::read(path);
-  t.require_columns({"probe", "turn", "r_mm"});
-  const size_t cp = t.column("probe"), ct = t.column("turn"), cr = t.column("r_mm");
-  const bool has_flag = t.has_column("flag");
-  const size_t cf = has_flag ? t.column("flag") : 0;
-  std::map<std::string, std::vector<TurnRow>> out;
-  for (size_t i = 0; i < t.rows(); ++i) {
-    const double turn = t.number(i, ct);
-    if (turn != std::floor(turn) || std::abs(turn) > 1e9)
-      throw data_error(t.name(), t.line(i), "column 'turn': " + t.cell(i, ct) + " is not a turn number");
-    out[t.cell(i, cp)].push_back({static_cast<int>(turn), t.number(i, cr), has_flag ? t.cell(i, cf) : ""});
-  }
-  for (auto& kv : out)
-    std::sort(kv.second.begin(), kv.second.end(), [](const TurnRow& a, const TurnRow& b) { return a.turn < b.turn; });
-  return out;
-}
-
 }  // namespace
 
 Figure profile_figure(const PlotOptions& o) {
@@ -195,9 +168,10 @@ Figure profile_figure(const PlotOptions& o) {
   if (o.labels.size() > o.turns.size())
     throw usage_error(std::to_string(o.labels.size()) + " --label for " + std::to_string(o.turns.size()) +
                       " --turns files (in profile, --label names the --turns files)");
-  std::vector<std::map<std::string, std::vector<TurnRow>>> peaks, turns;
-  for (const auto& f : o.peaks) peaks.push_back(read_turn_rows(f));
-  for (const auto& f : o.turns) turns.push_back(read_turn_rows(f));
+  // probe,turn,r_mm[,flag] tables, read as compare reads them (sorted by probe and turn).
+  std::vector<TurnTable> peaks, turns;
+  for (const auto& f : o.peaks) peaks.push_back(turn_table_from_csv(CsvTable::read(f)));
+  for (const auto& f : o.turns) turns.push_back(turn_table_from_csv(CsvTable::read(f)));
   Figure fig;
   fig.kind = "profile";
   fig.title = o.title;
@@ -235,15 +209,14 @@ Figure profile_figure(const PlotOptions& o) {
     flagged.size = 1.6;
     flagged.name = "flagged peaks (merged, wide, weak, gap, edge)";
     numbers.color = 6;
-    std::vector<const TurnRow*> rows;
-    for (const auto& pk : peaks) {
-      auto it = pk.find(probe);
-      if (it == pk.end()) continue;
-      for (const auto& row : it->second) rows.push_back(&row);
+    std::vector<const TurnPoint*> rows;
+    for (const TurnTable& pk : peaks) {
+      const auto [first, last] = pk.probe_range(pk.probe_index(probe));
+      for (size_t i = first; i < last; ++i) rows.push_back(&pk.points[i]);
     }
     if (!rows.empty()) probes_marked.insert(probe);
     const int every = o.label_every > 0 ? o.label_every : auto_stride(rows.size(), 25);
-    for (const TurnRow* row : rows) {
+    for (const TurnPoint* row : rows) {
       Series& dst = row->flag.empty() || row->flag == "ok" ? ok : flagged;
       const double y = profile_at(prof, row->r_mm);
       dst.x.push_back(row->r_mm);
@@ -257,16 +230,16 @@ Figure profile_figure(const PlotOptions& o) {
     for (Series* s : {&ok, &flagged, &numbers})
       if (!s->x.empty()) fig.series.push_back(std::move(*s));
     for (size_t k = 0; k < turns.size(); ++k) {
-      auto it = turns[k].find(probe);
-      if (it == turns[k].end()) continue;
+      const auto [first, last] = turns[k].probe_range(turns[k].probe_index(probe));
+      if (first == last) continue;
       Series ticks;
       ticks.panel = pi;
       ticks.style = SeriesStyle::impulses;
       ticks.color = static_cast<int>(2 + k) % 8 == 3 ? 4 : static_cast<int>(2 + k);
       ticks.name = label_of(o, o.turns, k);
       const double top = -0.02 * ymax * static_cast<double>(1 + 2 * k), bottom = top - 0.035 * ymax;
-      for (const auto& row : it->second) {
-        ticks.x.push_back(row.r_mm);
+      for (size_t i = first; i < last; ++i) {
+        ticks.x.push_back(turns[k].points[i].r_mm);
         ticks.y.push_back(top);
         ticks.y_lo.push_back(bottom);
       }
@@ -279,8 +252,8 @@ Figure profile_figure(const PlotOptions& o) {
                       " matches none of the profiles' probes)");
   for (size_t k = 0; k < o.peaks.size(); ++k) {
     bool any = false;
-    for (const auto& kv : peaks[k]) any = any || probes_marked.count(kv.first);
-    if (!any && !o.common.quiet)
+    for (const auto& p : peaks[k].probes) any = any || probes_marked.count(p);
+    if (!any)
       cli::warn(o.common, o.peaks[k] + ": no peaks of the profiles' probes (probe names must match)");
   }
   apply_ranges(o, fig);
@@ -678,18 +651,18 @@ int run_plot(const PlotOptions& o) {
   }
   if (r.image == "-" && r.render && ::isatty(1))
     throw usage_error("will not write an image to a terminal: give -o FILE.png or -o FILE.svg (or pipe it)");
+  int w = 0, h = 0;  // 0: the figure's own size
   if (!o.size.empty()) {
-    int w = 0, h = 0;
     char tail = 0;
     if (std::sscanf(o.size.c_str(), "%d,%d%c", &w, &h, &tail) != 2 || w < 100 || h < 100 || w > 20000 || h > 20000)
       throw usage_error("--size '" + o.size + "': expected W,H in pixels, each 100 to 20000");
   }
   Figure fig = build_figure(o);
-  if (!o.size.empty()) std::sscanf(o.size.c_str(), "%d,%d", &fig.width_px, &fig.height_px);
-  if (!o.common.no_provenance) {
-    const std::string p = cli::provenance_comment();
-    fig.notes = p;
+  if (w > 0) {
+    fig.width_px = w;
+    fig.height_px = h;
   }
+  if (!o.common.no_provenance) fig.notes = cli::provenance_comment();
   render_figure(fig, r);
   return 0;
 }
