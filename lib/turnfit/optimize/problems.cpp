@@ -37,6 +37,19 @@ std::vector<std::vector<double>> front_of(std::vector<std::vector<double>> pts, 
   return thin(std::move(nd), n);
 }
 
+/// The front of the feasible (violation <= tol) designs among `candidates`: about n points.
+std::vector<std::vector<double>> feasible_front_of(const Problem& p, const std::vector<std::vector<double>>& candidates,
+                                                   double tol, size_t n) {
+  std::vector<std::vector<double>> pts;
+  for (const auto& x : candidates) {
+    Evaluation e = p.evaluate(x);
+    if (constraint_violation(e.g) <= tol) pts.push_back(std::move(e.f));
+  }
+  return front_of(std::move(pts), n);
+}
+
+double sq(double v) { return v * v; }
+
 /// Points on the unit simplex in `m` dimensions with `h` divisions (Das and Dennis 1998).
 void simplex_lattice(size_t m, size_t h, std::vector<double>& cur, size_t left,
                      std::vector<std::vector<double>>& out) {
@@ -224,7 +237,6 @@ class Bnh : public Problem {
     }
     return front_of(std::move(pts), npoints);
   }
-  static double sq(double v) { return v * v; }
 };
 
 /// Tanaka (TNK): f = x, the front on the wavy circle x1^2 + x2^2 = 1 + 0.1 cos(16 atan(x1/x2)).
@@ -275,14 +287,8 @@ class Osy : public Problem {
     }
     for (double t : linspace(2, 5, n)) cand.push_back({t, (t - 2) / 3, 1, 0, 1, 0});
     for (double t : linspace(0, 1, n)) cand.push_back({t, 2 - t, 1, 0, 1, 0});
-    std::vector<std::vector<double>> pts;
-    for (auto& x : cand) {
-      Evaluation e = evaluate(x);
-      if (constraint_violation(e.g) <= 1e-12) pts.push_back(e.f);
-    }
-    return front_of(std::move(pts), npoints);
+    return feasible_front_of(*this, cand, 1e-12, npoints);
   }
-  static double sq(double v) { return v * v; }
 };
 
 /// Srinivas and Deb (SRN). Deb (2001) gives the Pareto set as x1 = -2.5, x2 in [2.5, 14.79]
@@ -306,14 +312,8 @@ class Srn : public Problem {
       cand.push_back({3 * x2 - 10, x2});   // on the linear constraint
     }
     for (double a : linspace(0, 2 * kPi, 4 * n)) cand.push_back({15 * std::cos(a), 15 * std::sin(a)});
-    std::vector<std::vector<double>> pts;
-    for (auto& x : cand) {
-      Evaluation e = evaluate(x);
-      if (constraint_violation(e.g) <= 1e-9) pts.push_back(e.f);
-    }
-    return front_of(std::move(pts), npoints);
+    return feasible_front_of(*this, cand, 1e-9, npoints);
   }
-  static double sq(double v) { return v * v; }
 };
 
 std::string upper(std::string s) {
