@@ -5,9 +5,12 @@ Like PROJ's test/cli and samtools' test_cmd: a case is data (command, stdin, exp
 expected output with numeric tolerances); this script only runs and compares. The case format
 is described in tests/cli/README.md. Python 3 standard library only.
 
-Environment: TURNFIT_BIN (folder of the built tools, default <repo>/build/tools) and
-TURNFIT_SHARED (the shared data folder, default <repo>/../shared).
-Exit codes: 0 ok, 1 the case failed, 2 the case file itself is wrong, 77 skipped (input absent).
+Environment: TURNFIT_BIN (folder of the built tools, default <repo>/build/tools),
+TURNFIT_SHARED (the shared data folder, default <repo>/../shared), TURNFIT_BUILD_FEATURES (what
+the build has, e.g. "mpi"; CMake sets it) and TURNFIT_TEST_REQUIRE (what may not be missing:
+"gnuplot", "mpi"; CMake sets it). Under CI=true, missing shared data fails the case.
+Exit codes: 0 ok, 1 the case failed, 2 the case file itself is wrong, 77 skipped (an optional
+input or tool absent).
 """
 import csv
 import io
@@ -26,8 +29,8 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 REPO = os.path.dirname(os.path.dirname(HERE))
 
 CASE_KEYS = {
-    "description", "args", "pipeline", "stdin", "stdin_file", "setup", "env",
-    "requires_shared", "requires_files", "exit", "stage_exits", "timeout",
+    "description", "labels", "args", "pipeline", "stdin", "stdin_file", "setup", "env",
+    "requires_shared", "requires_tools", "requires_build", "exit", "stage_exits", "timeout",
     "stdout_contains", "stdout_not_contains", "stdout_matches", "stdout_empty",
     "stderr_contains", "stderr_not_contains", "stderr_matches", "stderr_empty",
     "csv", "json", "files", "files_absent",
@@ -46,6 +49,24 @@ class CaseError(Exception):
 
 class Skip(Exception):
     pass
+
+
+# Optional tools and what a build that requires them calls them (TURNFIT_TEST_REQUIRE). Any other
+# tool a case names is a plain dependency: missing, the case fails.
+OPTIONAL_TOOLS = {"gnuplot": "gnuplot", "mpirun": "mpi"}
+
+
+def required(what):
+    """Whether a missing `what` fails the case instead of skipping it (see the module doc)."""
+    if what == "shared" and os.environ.get("CI") == "true":
+        return True
+    return what in os.environ.get("TURNFIT_TEST_REQUIRE", "").split(",")
+
+
+def skip_or_fail(what, message):
+    if required(what):
+        raise OSError("missing %s, which this build requires: %s" % (what, message))
+    raise Skip("skipped: " + message)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -473,21 +494,31 @@ def run_case(case_path):
     validate_checks(case)
 
     bin_dir = os.path.abspath(os.environ.get("TURNFIT_BIN") or os.path.join(REPO, "build", "tools"))
-    shared = os.path.abspath(os.environ.get("TURNFIT_SHARED") or os.path.join(REPO, "..", "shared"))
+    # TURNFIT_SHARED wins; ctest passes the build's default as TURNFIT_SHARED_DEFAULT.
+    shared = os.path.abspath(os.environ.get("TURNFIT_SHARED") or os.environ.get("TURNFIT_SHARED_DEFAULT")
+                             or os.path.join(REPO, "..", "shared"))
     data = os.path.join(HERE, "data")
 
     for rel in case.get("requires_shared", []):
         if not os.path.exists(os.path.join(shared, rel)):
-            raise Skip("skipped: %s: %s not found (TURNFIT_SHARED=%s)" % (name, rel, shared))
+            skip_or_fail("shared", "%s: %s not found (TURNFIT_SHARED=%s)" % (name, rel, shared))
+    features = [f for f in os.environ.get("TURNFIT_BUILD_FEATURES", "").split(",") if f]
+    for feat in case.get("requires_build", []):
+        # "mpi": the build has it; "!mpi": the build lacks it (a case of the other branch).
+        have = feat.lstrip("!") in features
+        if have == feat.startswith("!"):
+            raise Skip("skipped: %s: this build %s %s" % (name, "has" if have else "lacks", feat.lstrip("!")))
+    for tool in case.get("requires_tools", []):
+        if shutil.which(tool) is None:
+            if tool not in OPTIONAL_TOOLS:
+                raise OSError("%s not on PATH (a dependency of the tests)" % tool)
+            skip_or_fail(OPTIONAL_TOOLS[tool], "%s: %s not on PATH" % (name, tool))
 
     tmp = tempfile.mkdtemp(prefix="turnfit-cli-%s-" % name)
     work = tempfile.mkdtemp(prefix="turnfit-cli-run-")  # runner's own files, outside $TMP
     try:
         subst = make_subst({"SHARED": shared, "TMP": tmp, "DATA": data, "BIN": bin_dir})
         case = subst(case)
-        for path in case.get("requires_files", []):
-            if not os.path.exists(path):
-                raise Skip("skipped: %s: %s not found" % (name, path))
         return check_case(name, case, bin_dir, shared, tmp, data, work)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)

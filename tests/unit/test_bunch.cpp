@@ -144,7 +144,7 @@ TEST_CASE("bunch: files of offsets: any subset of the columns, strict numbers", 
   CHECK(error_code([&] { read_bunch_file(dir + "/missing.csv"); }) == 66);
 }
 
-TEST_CASE("bunch: results do not depend on the thread count; a zero bunch is the reference particle",
+TEST_CASE("bunch: results do not depend on the thread count, a zero bunch is the reference particle",
           "[bunch]") {
   Machine mach = load_machine(test_file("machine/bunch/iso.json"));
   TrackModel model = make_track_model(mach);

@@ -190,7 +190,7 @@ TEST_CASE("machine: built-in design variables have the documented targets and bo
   CHECK(m.dvars.at("tc17mb").targets[0].pointer == "/trimcoils/16/bmax_T");
 }
 
-TEST_CASE("machine: built-ins exist only for the elements present; TC01 naming works") {
+TEST_CASE("machine: built-ins exist only for the elements present, TC01 naming works") {
   json doc = psi_doc();
   doc["cavities"].erase(4);  // main4 gone: no vmaincav4 and no vchange
   doc.erase("injection");

@@ -176,7 +176,7 @@ TEST_CASE("peaks: positions do not depend on the reading grid", "[peaks]") {
   }
 }
 
-TEST_CASE("peaks: thresholds reject noise; a lone turn in noise is found once", "[peaks]") {
+TEST_CASE("peaks: thresholds reject noise, a lone turn in noise is found once", "[peaks]") {
   SECTION("noise and baseline only") {
     const auto p = make_profile({}, 1.5, 2000, 2300, 0.5, 0.01, 9);
     const PeakResult r = find_peaks(p.x, p.y, PeakSettings{}, 1);
@@ -218,7 +218,7 @@ TEST_CASE("peaks: thresholds reject noise; a lone turn in noise is found once", 
   }
 }
 
-TEST_CASE("peaks: a missing turn skips a turn number (gap); edges are flagged", "[peaks]") {
+TEST_CASE("peaks: a missing turn skips a turn number (gap), edges are flagged", "[peaks]") {
   std::vector<double> c;
   for (int i = 0; i < 14; ++i) c.push_back(2000 + 10.0 * i);
   c.erase(c.begin() + 7);  // turn 8 lost

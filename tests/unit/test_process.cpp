@@ -44,7 +44,7 @@ TEST_CASE("run_process: megabytes both ways without a deadlock, a child that nev
   CHECK(r.out.size() == 1000);
 }
 
-TEST_CASE("run_process: time limit kills the whole process group; signals reported", "[process]") {
+TEST_CASE("run_process: time limit kills the whole process group, signals reported", "[process]") {
   ProcessSpec s;
   s.argv = shell_argv("sleep 30 & sleep 30; echo never");
   s.timeout_s = 0.3;
@@ -62,7 +62,7 @@ TEST_CASE("run_process: time limit kills the whole process group; signals report
   CHECK_FALSE(r.ok());
 }
 
-TEST_CASE("run_process: a missing program is reported, not thrown; threads do not share pipes", "[process]") {
+TEST_CASE("run_process: a missing program is reported, not thrown, threads do not share pipes", "[process]") {
   ProcessSpec s;
   s.argv = {"/nonexistent/program"};
   ProcessResult r = run_process(s);

@@ -75,7 +75,7 @@ TEST_CASE("ring8: tunes in the PSI Ring's range, no integer or nu_r = 2 nu_z cro
   for (size_t i = 1; i < rows.size(); ++i) CHECK(rows[i].nu_r > rows[i - 1].nu_r);
 }
 
-TEST_CASE("ring8: 590 MeV after 182 turns; turn separations like the paper's RRI2 and RRL", "[ring8]") {
+TEST_CASE("ring8: 590 MeV after 182 turns, turn separations like the paper's RRI2 and RRL", "[ring8]") {
   const Machine m = load_machine(ring8("machine.json"));
   const TrackModel model = make_track_model(m);
   const ParticleState start = injection_state(*m.injection, m.particle.mass_MeV);

@@ -157,7 +157,7 @@ TEST_CASE("synth: signal-to-noise grows with the beam current", "[synth]") {
   CHECK(s108 / n108 > 1.15 * (s58 / n58));                  // the noise grows less
 }
 
-TEST_CASE("synth: profiles peak at the tracked turns; overlap comes from the tracking", "[synth]") {
+TEST_CASE("synth: profiles peak at the tracked turns, overlap comes from the tracking", "[synth]") {
   Machine m = iso_machine();
   SynthSettings s = quick_settings(12, 200);
   s.phases = false;
@@ -254,11 +254,7 @@ TEST_CASE("synth: run-to-run drift moves the PSI Ring's RRL turns as much as the
   // positions of runs 1..10 of the example machine, compared pairwise (45 pairs): the spread is
   // a random betatron oscillation, so a single pair varies a lot and the mean over pairs is
   // what the defaults are set to.
-  const std::string map = shared_file("data/psi-ring/bfield.dat");
-  if (map.empty()) {
-    WARN("shared PSI Ring data not found: skipped");
-    return;
-  }
+  TURNFIT_REQUIRE_SHARED(map, "data/psi-ring/bfield.dat");
   nlohmann::json doc = read_json(std::string(TURNFIT_TEST_DIR) + "/../examples/psi-ring/aeo.json");
   const std::string dir = std::string(TURNFIT_TEST_DIR) + "/../examples/psi-ring";
   // The shared data wherever it is (TURNFIT_SHARED), not only beside the project.

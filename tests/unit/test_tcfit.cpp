@@ -146,7 +146,7 @@ TEST_CASE("tc-fit: psi-phase and psi-bfield descriptions of one coil give the sa
   }
 }
 
-TEST_CASE("tc-fit: coefficients about the window centre keep full precision; OPAL's form may not", "[tcfit]") {
+TEST_CASE("tc-fit: coefficients about the window centre keep full precision, OPAL's form may not", "[tcfit]") {
   TcFitOptions o;
   o.model = "local";
   o.degrees = "2/4";

@@ -485,16 +485,24 @@ std::vector<Individual> evaluate_generation(const Problem& problem, std::vector<
   if (!todo.empty()) {
     std::vector<std::vector<double>> batch(todo.size());
     for (size_t k = 0; k < todo.size(); ++k) batch[k] = out[todo[k]].x;
+    // Results are reported in id order, whatever order they complete in: the longest finished
+    // prefix goes out as soon as it grows. So the log is the same for any thread count or MPI
+    // layout; a kill loses at most the finished designs behind an unfinished one.
     std::mutex mu;
     std::vector<char> seen(todo.size(), 0);
+    size_t next = 0;
+    auto flush_prefix = [&] {
+      for (; next < todo.size() && seen[next]; ++next)
+        if (cb.on_evaluated) cb.on_evaluated(out[todo[next]]);
+    };
     evaluator.evaluate(batch, [&](size_t k, Evaluation e) {
       if (k >= todo.size()) return;
       Individual& ind = out[todo[k]];
       std::lock_guard<std::mutex> lock(mu);
       if (seen[k]) return;  // an evaluator must report once; a second report is ignored
-      seen[k] = 1;
       apply_evaluation(ind, std::move(e), nobj, ncon);
-      if (cb.on_evaluated) cb.on_evaluated(ind);
+      seen[k] = 1;
+      flush_prefix();
     });
     for (size_t k = 0; k < todo.size(); ++k)
       if (!seen[k]) {
@@ -503,8 +511,9 @@ std::vector<Individual> evaluate_generation(const Problem& problem, std::vector<
         e.ok = false;
         e.reason = "the evaluator returned no result";
         apply_evaluation(ind, std::move(e), nobj, ncon);
-        if (cb.on_evaluated) cb.on_evaluated(ind);
+        seen[k] = 1;
       }
+    flush_prefix();
     fresh += todo.size();
   }
   return out;

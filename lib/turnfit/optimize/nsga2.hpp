@@ -170,9 +170,10 @@ struct Nsga2Progress {
 /// What the engine reports during a run. Both may be empty.
 struct Nsga2Callbacks {
   /// Called once per design evaluated by this process (not for those taken from the log),
-  /// as soon as it is evaluated, never concurrently (calls are serialized by the engine), in
-  /// completion order; rank is -1 and crowding NaN (not known yet). Write and flush the log
-  /// line here.
+  /// never concurrently (calls are serialized by the engine), in id order: a design is
+  /// reported as soon as it and every design before it in its batch are evaluated, so the
+  /// sequence is the same for any thread count or evaluator. Rank is -1 and crowding NaN (not
+  /// known yet). Write and flush the log line here.
   std::function<void(const Individual&)> on_evaluated;
   /// Called after each generation's selection (generation 0 included), on the calling thread.
   std::function<void(const Nsga2Progress&)> on_generation;
