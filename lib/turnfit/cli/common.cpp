@@ -44,28 +44,31 @@ int run_tool(const std::string& tool, CLI::App& app, int argc, char** argv,
   g_have_provenance = true;
   app.name(prog);
   app.set_version_flag("--version", prog + " " + kVersion);
-  try {
-    app.parse(argc, argv);
-  } catch (const CLI::CallForHelp& e) {
-    return app.exit(e);  // prints help to stdout, returns 0
-  } catch (const CLI::CallForAllHelp& e) {
-    return app.exit(e);
-  } catch (const CLI::CallForVersion& e) {
-    std::cout << e.what() << "\n";
-    return 0;
-  } catch (const CLI::ParseError& e) {
-    std::cerr << prog << ": " << e.what() << "\n"
-              << "Run '" << prog << " --help' for usage.\n";
-    return static_cast<int>(ExitCode::usage);
-  }
-  try {
-    int rc = body();
+  // --help and --version write standard output too: a write error there is exit 74 as well.
+  const auto flushed = [&](int rc) {
     std::cout.flush();
     if (!std::cout) {
       std::cerr << prog << ": <stdout>: write error\n";
       return static_cast<int>(ExitCode::io);
     }
     return rc;
+  };
+  try {
+    app.parse(argc, argv);
+  } catch (const CLI::CallForHelp& e) {
+    return flushed(app.exit(e));  // prints help to stdout, returns 0
+  } catch (const CLI::CallForAllHelp& e) {
+    return flushed(app.exit(e));
+  } catch (const CLI::CallForVersion& e) {
+    std::cout << e.what() << "\n";
+    return flushed(0);
+  } catch (const CLI::ParseError& e) {
+    std::cerr << prog << ": " << e.what() << "\n"
+              << "Run '" << prog << " --help' for usage.\n";
+    return static_cast<int>(ExitCode::usage);
+  }
+  try {
+    return flushed(body());
   } catch (const Error& e) {
     std::cerr << prog << ": " << e.what() << "\n";
     return static_cast<int>(e.code());
