@@ -153,15 +153,41 @@ TEST_CASE("orbit: PSI Ring reference orbits (FIXPO, physics.md)", "[orbit][share
   OrbitRow a = closed_orbit(map, s, 72.0), b = closed_orbit(map, s, 369.995);
   REQUIRE(a.ok());
   REQUIRE(b.ok());
-  CHECK(a.r_mm == Approx(2131.4).margin(0.2));
-  CHECK(a.nu_r == Approx(1.1565).margin(0.003));
-  CHECK(a.nu_z == Approx(0.9001).margin(0.003));
-  CHECK(b.r_mm == Approx(3938.6).margin(0.2));
-  CHECK(b.nu_r == Approx(1.4519).margin(0.003));
-  CHECK(b.nu_z == Approx(0.8841).margin(0.003));
-  // Nearly isochronous for h = 6 at 50.65 MHz; the injection orbit slips by 3.7 deg/turn.
-  CHECK(a.f_rev_MHz == Approx(50.65 / 6).epsilon(2e-3));
-  CHECK(std::fabs(b.phase_slip_deg) < 1.0);
+  // Tolerances: the accuracy the README and turnfit-orbit(1) (ACCURACY) promise against FIXPO,
+  // r within 0.05 mm (FIXPO's radii are given to 0.1 mm), nu_r within 0.0012, nu_z within 0.0016.
+  CHECK(a.r_mm == Approx(2131.4).margin(0.05));
+  CHECK(a.nu_r == Approx(1.1565).margin(0.0012));
+  CHECK(a.nu_z == Approx(0.9001).margin(0.0016));
+  CHECK(b.r_mm == Approx(3938.6).margin(0.05));
+  CHECK(b.nu_r == Approx(1.4519).margin(0.0012));
+  CHECK(b.nu_z == Approx(0.8841).margin(0.0016));
+}
+
+TEST_CASE("orbit: PSI Ring revolution frequency and phase slip (regression)", "[orbit][shared][regression]") {
+  // Regression: FIXPO's reference rows (physics.md) carry no revolution frequency, and "nearly
+  // isochronous" has no stated accuracy, so these are turnfit's own values (README's example
+  // table: 8.427142 MHz, 3.7230 deg/turn at 72 MeV; 8.441840 MHz, -0.0444 deg/turn at 369.995
+  // MeV). Trusted because the same orbits' r, nu_r and nu_z agree with FIXPO (the case above)
+  // and f_rev's formula is checked against qB/(2 pi gamma m) to 1e-9 in the uniform field. The
+  // tolerances are the README's printed digits (half a unit of the last one); a change of the
+  // orbit finder's step count moves r by 2e-6 mm (turnfit-orbit(1)), far below them. Guards
+  // the time-of-flight integration and the slip's sign and scale (slip = 360 (f_rf / f_rev - h)).
+  TURNFIT_REQUIRE_SHARED(path, "data/psi-ring/bfield.dat");
+  PolarFieldMap map = read_field_map(path, MapFormat::psi_ring);
+  OrbitSettings s;
+  s.harmonic = 6;
+  s.rf_MHz = 50.65;
+  OrbitRow a = closed_orbit(map, s, 72.0), b = closed_orbit(map, s, 369.995);
+  REQUIRE(a.ok());
+  REQUIRE(b.ok());
+  CHECK(a.f_rev_MHz == Approx(8.427142).margin(5e-7));
+  CHECK(a.phase_slip_deg == Approx(3.7230).margin(5e-5));
+  CHECK(b.f_rev_MHz == Approx(8.441840).margin(5e-7));
+  CHECK(b.phase_slip_deg == Approx(-0.0444).margin(5e-5));
+  // Independent of the regression values: the slip is the RF phase gained per revolution,
+  // 360 (f_rf / f_rev - h); 1e-6 deg covers f_rev's rounding to double precision.
+  CHECK(a.phase_slip_deg == Approx(360 * (50.65 / a.f_rev_MHz - 6)).margin(1e-6));
+  CHECK(b.phase_slip_deg == Approx(360 * (50.65 / b.f_rev_MHz - 6)).margin(1e-6));
 }
 
 TEST_CASE("orbit: PSI Ring table from 72 to 590 MeV closes everywhere", "[orbit][shared]") {
@@ -172,13 +198,21 @@ TEST_CASE("orbit: PSI Ring table from 72 to 590 MeV closes everywhere", "[orbit]
   s.rf_MHz = 50.65;
   auto rows = orbit_table(map, s, parse_energies("72:590:1"), 2);
   int bad = 0;
-  double max_slip = 0;
+  double slip_sum = 0, worst_phase = 0;
   for (const auto& r : rows) {
     bad += !r.ok();
-    if (r.energy_MeV >= 80 && r.energy_MeV <= 560) max_slip = std::max(max_slip, std::fabs(r.phase_slip_deg));
+    slip_sum += r.phase_slip_deg;
+    worst_phase = std::max(worst_phase, std::fabs(slip_sum));
   }
   CHECK(bad == 0);
-  CHECK(max_slip < 1.5);  // isochronous within a degree or so per turn between 80 and 560 MeV
+  // Isochronous enough to accelerate (no accuracy is documented for "nearly isochronous"; this
+  // is the physical requirement): a particle gaining dE per turn collects an RF phase of
+  // sum(slip(E)) * 1 MeV / dE over these 1 MeV steps, and must stay within 90 deg of crest.
+  // OPAL's run goes from 72 to 590.53 MeV in 190 turns (physics.md): dE = 2.73 MeV on average.
+  // Measured: at most 8 deg. A field 1e-3 too strong or weak slips 2.2 deg/turn: over 500 deg.
+  const double gain_MeV = (590.53 - 72) / 190;
+  INFO("largest accumulated phase " << worst_phase / gain_MeV << " deg");
+  CHECK(worst_phase / gain_MeV < 90);
   // Radii grow with energy.
   for (size_t i = 1; i < rows.size(); ++i) CHECK(rows[i].r_avg_mm > rows[i - 1].r_avg_mm);
 }

@@ -63,42 +63,59 @@ TEST_CASE("track: a particle leaving the map is a reported loss", "[track]") {
 }
 
 TEST_CASE("track: PSI Ring run matches OPAL's convention anchors (physics.md)", "[track][shared]") {
+  // turnfit's default physics (spline map, azimuth scheme, exact gap times) with OPAL's RF
+  // deflection (--opal-deflection): physics.md documents that this matches an independent
+  // cubic-spline re-implementation of cyclotron2.in to 0.007 mm over 190 turns, and that the
+  // cubic interpolation is what moves turn 190 away from OPAL's bilinear run (by 1.75 mm, the
+  // final energy by -0.23 MeV); the exact gap time moves radii by at most 0.008 mm.
+  // (OPAL's own numerics against the same anchors, to its printed digits: test_opal_compat.cpp.)
   TURNFIT_REQUIRE_SHARED(path, "data/psi-ring/bfield.dat");
   Machine mach = load_machine(aeo_machine());
   TrackModel m = make_track_model(mach);
   TrackSettings st;
   st.turns = 190;
+  st.gap_physics = GapPhysics::opal;
   std::vector<TurnRecord> turns;
   std::vector<KickRecord> kicks;
   TrackEnd end = track_particle(m, injection_state(*mach.injection, mach.particle.mass_MeV), st, turns, &kicks);
   REQUIRE_FALSE(end.lost);
   REQUIRE(kicks.size() >= 3);
-  // First Rf1 (main2 here) near -4.955 deg, T = 0.9695, +0.4637 MeV; then Rf3 (main3) near
-  // -3.64 deg, +0.4677 MeV; then the flat-top near 164.5 deg, T = 0.8206, -0.1255 MeV.
+  // First Rf1 (main2 here): T = 0.9695, +0.4637 MeV; then Rf3 (main3) +0.4677 MeV; then the
+  // flat-top: T = 0.8206 (OPAL: -0.1255 MeV). Tolerance: one unit of OPAL's last printed digit.
+  // T depends only on beta (identical here). The main kicks, dE = V V_n(rho) T cos(phi) near
+  // crest, move by V T sin(phi) dphi: 1e-4 MeV bounds the phase to ~0.1 deg of OPAL's (the
+  // exact gap time differs from OPAL's estimate by 0.008 deg). The flat-top's dE is not
+  // checked here: its profile is steep where the orbit crosses it (rho_n = 0.06), so its dE
+  // follows the radius, which the interpolation moves by an amount physics.md does not give
+  // for the first turn (here -1.4e-4 MeV); OPAL-compatible mode matches it to 1e-4
+  // (test_opal_compat.cpp), and its phases there to OPAL's digits.
   CHECK(m.gaps[kicks[0].gap].name() == "main2");
-  CHECK(kicks[0].kick.phase_deg == Approx(-4.955).margin(0.05));
   CHECK(kicks[0].kick.transit == Approx(0.9695).margin(1e-4));
-  CHECK(kicks[0].kick.de_MeV == Approx(0.4637).margin(5e-4));
+  CHECK(kicks[0].kick.de_MeV == Approx(0.4637).margin(1e-4));
   CHECK(m.gaps[kicks[1].gap].name() == "main3");
-  CHECK(kicks[1].kick.de_MeV == Approx(0.4677).margin(5e-4));
+  CHECK(kicks[1].kick.de_MeV == Approx(0.4677).margin(1e-4));
   CHECK(m.gaps[kicks[2].gap].name() == "ft");
-  CHECK(kicks[2].kick.phase_deg == Approx(164.5).margin(0.1));
   CHECK(kicks[2].kick.transit == Approx(0.8206).margin(1e-4));
-  CHECK(kicks[2].kick.de_MeV == Approx(-0.1255).margin(5e-4));
-  // At azimuth 0: turn 1 at 2144.41 mm, 73.275 MeV, 82.34 ns; turn 2 at 2165.53 mm, 75.035 MeV;
-  // turn 190 at 4402.80 mm, 590.53 MeV (OPAL, bilinear map). Bicubic interpolation moves radii by
-  // up to 1.75 mm and the final energy by -0.23 MeV (physics.md), hence the margins.
+  // At azimuth 0 (OPAL): turn 1 at 2144.41 mm, 73.275 MeV, 82.34 ns; turn 2 at 2165.53 mm,
+  // 75.035 MeV; turn 190 at 4402.80 mm, 590.53 MeV (23040 steps/turn).
   // Probe X0 (azimuth 0) only: the example also has RRI2 and RRL.
   turns.erase(std::remove_if(turns.begin(), turns.end(), [&](const TurnRecord& t) { return m.probes[t.probe].name != "X0"; }),
               turns.end());
   REQUIRE(turns.size() == 190);
-  CHECK(turns[0].r_mm == Approx(2144.41).margin(0.5));
-  CHECK(turns[0].energy_MeV == Approx(73.275).margin(0.005));
-  CHECK(turns[0].t_ns == Approx(82.34).margin(0.05));
-  CHECK(turns[1].r_mm == Approx(2165.53).margin(0.5));
-  CHECK(turns[1].energy_MeV == Approx(75.035).margin(0.005));
-  CHECK(turns[189].r_mm == Approx(4402.80).margin(2.5));
-  CHECK(turns[189].energy_MeV == Approx(590.53).margin(0.5));
+  // Turns 1-2: energy and time to one unit of OPAL's last digit (each main kick within 1e-4
+  // MeV, above). Radii: physics.md gives the interpolation's effect only as
+  // "up to 1.75 mm" over the run (largest at turn 190), so that bound, plus OPAL's rounding
+  // (0.005 mm) and the gap time (0.008 mm), is all that can be claimed for them here.
+  CHECK(turns[0].energy_MeV == Approx(73.275).margin(0.001));
+  CHECK(turns[0].t_ns == Approx(82.34).margin(0.01));
+  CHECK(turns[1].energy_MeV == Approx(75.035).margin(0.001));
+  CHECK(turns[0].r_mm == Approx(2144.41).margin(1.75 + 0.013));
+  CHECK(turns[1].r_mm == Approx(2165.53).margin(1.75 + 0.013));
+  // Turn 190: OPAL's value moved by the documented interpolation effect, -1.75 mm and -0.23
+  // MeV. Tolerance: the rounding of OPAL's value and of the shift (0.005 mm each) plus the
+  // 0.007 mm agreement with the independent re-implementation; 0.005 + 0.005 MeV in energy.
+  CHECK(turns[189].r_mm == Approx(4402.80 - 1.75).margin(0.017));
+  CHECK(turns[189].energy_MeV == Approx(590.53 - 0.23).margin(0.01));
 }
 
 TEST_CASE("track: the azimuth scheme agrees with RK4 at 23040 steps per turn", "[track][shared]") {
@@ -115,7 +132,10 @@ TEST_CASE("track: the azimuth scheme agrees with RK4 at 23040 steps per turn", "
   REQUIRE(a.size() == b.size());
   double worst = 0;
   for (size_t i = 0; i < a.size(); ++i) worst = std::max(worst, std::fabs(a[i].r_mm - b[i].r_mm));
-  CHECK(worst < 0.05);
+  // The accuracy README and turnfit-track(1) (Accuracy and speed) promise: every crossing of
+  // X0, RRI2 and RRL within 0.005 mm of RK4 at 23040 steps per turn.
+  INFO("worst |dr| = " << worst << " mm over " << a.size() << " crossings");
+  CHECK(worst <= 0.005);
 }
 
 TEST_CASE("track: trim coil lookup tables follow the formulas within their tolerance", "[track][trimcoil]") {
