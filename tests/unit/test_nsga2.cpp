@@ -410,29 +410,50 @@ TEST_CASE("NSGA-II reaches the ZDT hypervolume targets", "[nsga2][slowish]") {
   }
 }
 
+namespace {
+struct ConstrainedCase {
+  const char* name;
+  size_t generations;
+  double gd, igd;
+};
+// Seed 2, population 100. GD: mean distance to the true front; IGD: how well it is covered.
+const ConstrainedCase kConstrained[] = {{"TNK", 100, 4e-3, 0.016}, {"OSY", 250, 0.9, 8}, {"BNH", 100, 0.13, 1.1},
+                                        {"SRN", 100, 0.7, 2.4}, {"C2-DTLZ2", 150, 0.018, 0.12}};
+Nsga2Result run_constrained(const Problem& p, const ConstrainedCase& c) {
+  Nsga2Settings s;
+  s.population = 100;
+  s.generations = c.generations;
+  s.seed = 2;
+  return run_nsga2(p, s, 2);
+}
+}  // namespace
+
 TEST_CASE("NSGA-II on constrained problems ends with every individual feasible on the front", "[nsga2]") {
-  // Thresholds from 5 seeds (GD: mean distance to the true front; IGD: how well it is
-  // covered), about twice the worst seen; the objectives of OSY, BNH and SRN span 50-250.
-  // OSY's IGD reaches 4.4: NSGA-II at this budget often thins out one of its five pieces.
-  struct Case {
-    const char* name;
-    size_t generations;
-    double gd, igd;
-  };
-  for (const Case& c : {Case{"TNK", 100, 4e-3, 0.016}, Case{"OSY", 250, 0.9, 8}, Case{"BNH", 100, 0.13, 1.1},
-                        Case{"SRN", 100, 0.7, 2.4}, Case{"C2-DTLZ2", 150, 0.018, 0.12}}) {
+  // Invariants, no thresholds: constraint domination drives every individual feasible, and a
+  // run this long leaves the whole population on its own first front.
+  for (const ConstrainedCase& c : kConstrained) {
     auto p = make_problem(c.name);
-    Nsga2Settings s;
-    s.population = 100;
-    s.generations = c.generations;
-    s.seed = 2;
-    auto r = run_nsga2(*p, s, 2);
+    auto r = run_constrained(*p, c);
     INFO(c.name);
     for (const auto& i : r.population) REQUIRE(i.feasible());
-    auto front = pareto_front(r.population);
-    REQUIRE(front.size() == r.population.size());
+    REQUIRE(pareto_front(r.population).size() == r.population.size());
+  }
+}
+
+TEST_CASE("NSGA-II on constrained problems: distance to the true fronts (regression)", "[nsga2][regression]") {
+  // Regression: no independent figure exists for GD/IGD at this budget and seed (the
+  // literature reports other budgets and metrics), so the thresholds are the engine's own
+  // results from 5 seeds, about twice the worst seen; the objectives of OSY, BNH and SRN span
+  // 50-250. OSY's IGD reaches 4.4: NSGA-II at this budget often thins out one of its five
+  // pieces. Guards the constraint handling and the crowding against regressions that leave
+  // the population feasible but off the front or bunched on a piece of it; the true fronts
+  // (problems.cpp) are independent, analytic.
+  for (const ConstrainedCase& c : kConstrained) {
+    auto p = make_problem(c.name);
+    auto r = run_constrained(*p, c);
+    INFO(c.name);
     std::vector<std::vector<double>> f;
-    for (auto& i : front) f.push_back(i.f);
+    for (auto& i : pareto_front(r.population)) f.push_back(i.f);
     auto truth = p->true_front(4000);
     CHECK(generational_distance(f, truth) < c.gd);
     // Spread along the front, not collapsed to a piece of it.

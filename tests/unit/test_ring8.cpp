@@ -52,6 +52,7 @@ TEST_CASE("ring8: isochronous to 1e-5 from 72 to 590 MeV, every MeV", "[ring8]")
     worst = std::max(worst, std::fabs(r.f_rev_MHz / f_target - 1));
     worst_slip = std::max(worst_slip, std::fabs(r.phase_slip_deg));
   }
+  // README: "below 1e-5 at every MeV from 72 to 590 MeV"; the slip is the same bound in RF phase.
   CHECK(worst < 1e-5);
   CHECK(worst_slip < 360 * 6 * 1e-5);  // 0.0216 deg of RF phase per turn
 }
@@ -96,24 +97,44 @@ TEST_CASE("ring8: 590 MeV after 182 turns, turn separations like the paper's RRI
   CHECK(rrl.back().energy_MeV > 585);
   CHECK(rrl.back().energy_MeV < 590);
   CHECK(end.energy_MeV > 590);  // two more turns past the probe
-  // Turn separation (paper Sec. II.B: RRI2 18-27 mm; RRL 22.9 mm down to 4.56 mm, 6.09 mm on
-  // average over the last 20 turns). ring8's beam is centred, so its separations are smooth.
+  // Turn separation at RRI2 within the paper's observed range (Sec. II.B: 18-27 mm): a design
+  // envelope for ring8, not an accuracy (ring8 is a different machine; its beam is centred).
   for (size_t i = 1; i < rri2.size(); ++i) {
     CHECK(rri2[i].r_mm - rri2[i - 1].r_mm > 18);
     CHECK(rri2[i].r_mm - rri2[i - 1].r_mm < 27);
   }
-  CHECK(rrl[1].r_mm - rrl[0].r_mm == Approx(22.9).margin(2.5));
+}
+
+TEST_CASE("ring8: RRL turn separations as documented (regression)", "[ring8][regression]") {
+  // Regression: ring8 only resembles the paper's PSI Ring (RRL 22.9 -> 4.56 mm, 6.09 mm over the
+  // last 20 turns), it is not a model of it, so the paper's numbers cannot be a reference with a
+  // tolerance. These are ring8's own values as README and bench/RESULTS.md document them: 21.6
+  // mm at turn 10, the smallest 5.4 mm, 5.83 mm on average over the last 20 turns. Trusted
+  // because the tracker that makes them is tied to OPAL's anchors and to RK4 (test_track.cpp);
+  // guards the committed machine (voltages, phases, injection) and the tracker against
+  // drifting. Tolerance: half a unit of the documented last digit.
+  const Machine m = load_machine(ring8("machine.json"));
+  const TrackModel model = make_track_model(m);
+  TrackSettings ts;
+  ts.turns = 184;
+  std::vector<TurnRecord> turns;
+  REQUIRE_FALSE(track_particle(model, injection_state(*m.injection, m.particle.mass_MeV), ts, turns).lost);
+  REQUIRE(model.probes[1].name == "RRL");
+  const auto rrl = at_probe(turns, 1);
+  REQUIRE(rrl.size() == 174);
   double last20 = 0, smallest = 1e9;
   for (size_t i = rrl.size() - 20; i < rrl.size(); ++i) last20 += (rrl[i].r_mm - rrl[i - 1].r_mm) / 20;
   for (size_t i = 1; i < rrl.size(); ++i) smallest = std::min(smallest, rrl[i].r_mm - rrl[i - 1].r_mm);
-  CHECK(last20 == Approx(6.09).margin(0.5));
-  CHECK(smallest == Approx(4.56).margin(1.0));
+  CHECK(rrl[1].r_mm - rrl[0].r_mm == Approx(21.6).margin(0.05));
+  CHECK(last20 == Approx(5.83).margin(0.005));
+  CHECK(smallest == Approx(5.4).margin(0.05));
 }
 
 TEST_CASE("ring8: the OPAL RING map holds the same field as the turnfit map", "[ring8]") {
   const PolarFieldMap a = read_field_map(ring8("field.map"), MapFormat::turnfit);
   const PolarFieldMap b = read_field_map(ring8("field-ring.dat"), MapFormat::psi_ring);
   REQUIRE(a.values().size() == b.values().size());
+  // 1e-8 T: the RING format's fixed-width numbers (kG, 16 characters) round the field there.
   for (size_t i = 0; i < a.values().size(); ++i) CHECK(b.values()[i] == Approx(a.values()[i]).margin(1e-8));
   // And both are the committed spec, sampled.
   const PolarFieldMap c = make_sector_field(read_sector_spec(ring8("field.json")));

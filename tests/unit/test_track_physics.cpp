@@ -228,8 +228,14 @@ TEST_CASE("track physics: on crest in an isochronous field, 72 -> 590 MeV takes 
                << last.r_mm - iso_radius(last.energy_MeV) * 1e3 << " mm");
     CHECK(std::abs(reached - expected) <= 1);
     CHECK(last.energy_MeV - 72 == Approx(expected * gain).epsilon(2e-4));
-    // And the orbit is the isochronous circle r(E) = beta c / omega, up to the off-centring.
-    CHECK(last.r_mm == Approx(iso_radius(last.energy_MeV) * 1e3).margin(5.0));
+    // And the orbit is the isochronous circle r(E) = beta c / omega, up to the off-centring:
+    // the accelerated orbit is made of arcs of radius r(E_k) meeting tangentially at the gaps,
+    // whose centres lie within one kick's radius step dr = (c / omega) dbeta/dE V of the
+    // machine centre, so |r - r(E)| <= dr, 1.8 mm at 590 MeV (13 mm at 72 MeV). Measured:
+    // 0.002 mm (the four symmetric kicks centre the orbit between the gaps).
+    const Kinematics kl = kinematics(kMass, 1, last.energy_MeV);
+    const double dr_mm = kC / omega_rev() / (kMass * std::pow(kl.gamma, 3) * kl.beta) * V * 1e3;
+    CHECK(last.r_mm == Approx(iso_radius(last.energy_MeV) * 1e3).margin(dr_mm));
   }
 }
 
