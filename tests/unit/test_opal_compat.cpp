@@ -224,15 +224,15 @@ TEST_CASE("opal compat: the PSI Ring run lands on OPAL's anchors (physics.md)", 
   CHECK(run.kicks[2].kick.de_MeV == Approx(-0.1255).margin(1e-4));
   // At azimuth 0: turn 1 at 2144.41 mm, 73.275 MeV, 82.34 ns; turn 2 at 2165.53 mm, 75.035 MeV.
   REQUIRE(run.x0.size() == 190);
-  CHECK(run.x0[0].r_mm == Approx(2144.41).margin(0.01));
+  CHECK(run.x0[0].r_mm == Approx(2144.41).epsilon(0).margin(0.01));
   CHECK(run.x0[0].energy_MeV == Approx(73.275).margin(0.001));
   CHECK(run.x0[0].t_ns == Approx(82.34).margin(0.01));
-  CHECK(run.x0[1].r_mm == Approx(2165.53).margin(0.01));
+  CHECK(run.x0[1].r_mm == Approx(2165.53).epsilon(0).margin(0.01));
   CHECK(run.x0[1].energy_MeV == Approx(75.035).margin(0.001));
   // Turn 190 at 4402.80 mm, 590.53 MeV is OPAL at 23040 steps/turn; its 2880 and 23040 runs
   // differ by up to 0.032 mm at azimuth 0, hence 0.05 mm here.
-  CHECK(run.x0[189].r_mm == Approx(4402.80).margin(0.05));
-  CHECK(run.x0[189].energy_MeV == Approx(590.53).margin(0.01));
+  CHECK(run.x0[189].r_mm == Approx(4402.80).epsilon(0).margin(0.05));
+  CHECK(run.x0[189].energy_MeV == Approx(590.53).epsilon(0).margin(0.01));
 }
 
 TEST_CASE("opal compat: OPAL's gap-time estimate is what opal_compat changes, by <= 0.008 mm",
@@ -279,8 +279,8 @@ TEST_CASE("opal compat: the default path is unchanged", "[track][opal][shared][r
     REQUIRE_FALSE(end.lost);
     const std::vector<TurnRecord> x0 = x0_rows(m, turns);
     REQUIRE(x0.size() == 190);
-    CHECK(x0[0].r_mm == Approx(2144.160142).margin(0.005));
-    CHECK(x0[189].r_mm == Approx(4400.611717).margin(0.005));
-    CHECK(x0[189].energy_MeV == Approx(590.200454).margin(0.003));
+    CHECK(x0[0].r_mm == Approx(2144.160142).epsilon(0).margin(0.005));
+    CHECK(x0[189].r_mm == Approx(4400.611717).epsilon(0).margin(0.005));
+    CHECK(x0[189].energy_MeV == Approx(590.200454).epsilon(0).margin(0.003));
   }
 }

@@ -155,10 +155,10 @@ TEST_CASE("orbit: PSI Ring reference orbits (FIXPO, physics.md)", "[orbit][share
   REQUIRE(b.ok());
   // Tolerances: the accuracy the README and turnfit-orbit(1) (ACCURACY) promise against FIXPO,
   // r within 0.05 mm (FIXPO's radii are given to 0.1 mm), nu_r within 0.0012, nu_z within 0.0016.
-  CHECK(a.r_mm == Approx(2131.4).margin(0.05));
+  CHECK(a.r_mm == Approx(2131.4).epsilon(0).margin(0.05));
   CHECK(a.nu_r == Approx(1.1565).margin(0.0012));
   CHECK(a.nu_z == Approx(0.9001).margin(0.0016));
-  CHECK(b.r_mm == Approx(3938.6).margin(0.05));
+  CHECK(b.r_mm == Approx(3938.6).epsilon(0).margin(0.05));
   CHECK(b.nu_r == Approx(1.4519).margin(0.0012));
   CHECK(b.nu_z == Approx(0.8841).margin(0.0016));
 }
@@ -180,9 +180,9 @@ TEST_CASE("orbit: PSI Ring revolution frequency and phase slip (regression)", "[
   OrbitRow a = closed_orbit(map, s, 72.0), b = closed_orbit(map, s, 369.995);
   REQUIRE(a.ok());
   REQUIRE(b.ok());
-  CHECK(a.f_rev_MHz == Approx(8.427142).margin(5e-7));
+  CHECK(a.f_rev_MHz == Approx(8.427142).epsilon(0).margin(5e-7));
   CHECK(a.phase_slip_deg == Approx(3.7230).margin(5e-5));
-  CHECK(b.f_rev_MHz == Approx(8.441840).margin(5e-7));
+  CHECK(b.f_rev_MHz == Approx(8.441840).epsilon(0).margin(5e-7));
   CHECK(b.phase_slip_deg == Approx(-0.0444).margin(5e-5));
   // Independent of the regression values: the slip is the RF phase gained per revolution,
   // 360 (f_rf / f_rev - h); 1e-6 deg covers f_rev's rounding to double precision.
