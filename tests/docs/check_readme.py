@@ -311,6 +311,12 @@ def main():
         work = make_sandbox(root, repo, os.path.abspath(args.bin),
                             os.path.abspath(args.shared) if args.shared else None)
         env = dict(os.environ)
+        # A make above us (make test -> ctest -> here) passes its flags and overrides through
+        # MAKEFLAGS, and Makefile.wrap's ?= variables take the environment's: the README's
+        # commands run as a user's shell would run them.
+        for name in ("MAKEFLAGS", "MFLAGS", "MAKELEVEL", "MAKEOVERRIDES", "BUILD", "PREFIX", "JOBS",
+                     "SHARED", "CMAKE_ARGS", "DESTDIR"):
+            env.pop(name, None)
         env["PATH"] = os.path.abspath(args.bin) + os.pathsep + env.get("PATH", "")
         env["LC_ALL"] = "C"
         failed = 0
