@@ -33,8 +33,8 @@ TEST_CASE("field: spline reproduces constants and cubics in r exactly", "[field]
     for (double th : {0.0, 0.1, 1.0, 5.0}) {
       FieldSample s;
       REQUIRE(map.sample(r, th, s));
-      CHECK(s.bz_T == Approx(f(r, th)).margin(1e-13));
-      CHECK(s.dbz_dr_T_m == Approx(0.2 - 0.3 * r + 0.15 * r * r).margin(1e-12));
+      CHECK(s.bz_T == Approx(f(r, th)).epsilon(0).margin(1e-13));
+      CHECK(s.dbz_dr_T_m == Approx(0.2 - 0.3 * r + 0.15 * r * r).epsilon(0).margin(1e-12));
       CHECK(s.dbz_dth_T == Approx(0).margin(1e-12));
     }
   }
@@ -69,9 +69,9 @@ TEST_CASE("field: Bz and both derivatives are continuous across cell boundaries"
       FieldSample a, b;
       REQUIRE(map.sample(r - eps, th, a));
       REQUIRE(map.sample(r + eps, th, b));
-      CHECK(a.bz_T == Approx(b.bz_T).margin(1e-7));
-      CHECK(a.dbz_dr_T_m == Approx(b.dbz_dr_T_m).margin(1e-5));
-      CHECK(a.dbz_dth_T == Approx(b.dbz_dth_T).margin(1e-5));
+      CHECK(a.bz_T == Approx(b.bz_T).epsilon(0).margin(1e-7));
+      CHECK(a.dbz_dr_T_m == Approx(b.dbz_dr_T_m).epsilon(0).margin(1e-5));
+      CHECK(a.dbz_dth_T == Approx(b.dbz_dth_T).epsilon(0).margin(1e-5));
     }
   }
   for (int j = 0; j < g.ntheta; ++j) {  // azimuthal grid lines, including the periodic seam
@@ -80,9 +80,9 @@ TEST_CASE("field: Bz and both derivatives are continuous across cell boundaries"
       FieldSample a, b;
       REQUIRE(map.sample(r, th - eps, a));
       REQUIRE(map.sample(r, th + eps, b));
-      CHECK(a.bz_T == Approx(b.bz_T).margin(1e-7));
-      CHECK(a.dbz_dr_T_m == Approx(b.dbz_dr_T_m).margin(1e-5));
-      CHECK(a.dbz_dth_T == Approx(b.dbz_dth_T).margin(1e-5));
+      CHECK(a.bz_T == Approx(b.bz_T).epsilon(0).margin(1e-7));
+      CHECK(a.dbz_dr_T_m == Approx(b.dbz_dr_T_m).epsilon(0).margin(1e-5));
+      CHECK(a.dbz_dth_T == Approx(b.dbz_dth_T).epsilon(0).margin(1e-5));
     }
   }
 }
@@ -91,8 +91,8 @@ TEST_CASE("field: N-fold symmetry and the radial range", "[field]") {
   auto f = [](double r, double th) { return 1 + 0.2 * std::cos(4 * th) + 0.1 * std::sin(8 * th) * r; };
   PolarFieldMap map = make_field_map(small_grid(4), f, "sym");
   for (double th : {0.05, 1.0, 2.5}) {
-    CHECK(map.bz(0.8, th) == Approx(map.bz(0.8, th + kPi / 2)).margin(1e-12));
-    CHECK(map.bz(0.8, th) == Approx(map.bz(0.8, th - 6 * kPi)).margin(1e-12));
+    CHECK(map.bz(0.8, th) == Approx(map.bz(0.8, th + kPi / 2)).epsilon(0).margin(1e-12));
+    CHECK(map.bz(0.8, th) == Approx(map.bz(0.8, th - 6 * kPi)).epsilon(0).margin(1e-12));
   }
   FieldSample s;
   CHECK(map.sample(0.5, 0, s));
@@ -215,8 +215,8 @@ TEST_CASE("field: the PSI Ring map reads as physics.md describes it", "[field][s
     return std::make_pair(m, at);
   };
   auto p21 = peak(10), p45 = peak(130);
-  CHECK(p21.first == Approx(1.48).margin(0.02));
-  CHECK(p45.first == Approx(2.07).margin(0.02));
+  CHECK(p21.first == Approx(1.48).epsilon(0).margin(0.02));
+  CHECK(p45.first == Approx(2.07).epsilon(0).margin(0.02));
   CHECK(p21.second <= 6);  // within 2 deg of theta = 0
   CHECK(map.bz(2.1, 0) > map.bz(2.1, kPi / 8));  // hill centre above the valley
 }

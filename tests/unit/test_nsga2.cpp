@@ -122,8 +122,8 @@ TEST_CASE("Rng: reproducible, per-generation streams, uniform", "[nsga2]") {
   }
   CHECK(lo >= 0);
   CHECK(hi < 1);
-  CHECK(sum / n == Approx(0.5).margin(0.003));
-  for (int c7 : counts) CHECK(double(c7) / n == Approx(1.0 / 7).margin(0.004));
+  CHECK(sum / n == Approx(0.5).epsilon(0).margin(0.003));
+  for (int c7 : counts) CHECK(double(c7) / n == Approx(1.0 / 7).epsilon(0).margin(0.004));
 }
 
 TEST_CASE("constraint-domination: feasible first, then the violation, then Pareto", "[nsga2]") {
@@ -255,19 +255,19 @@ TEST_CASE("SBX: children in bounds, mean kept, spread distributed as eta says", 
       gt11 += beta > 1.1;
       first_low += c1[0] < c2[0];
     }
-    CHECK(mean / n == Approx(0.5).margin(1e-6));
+    CHECK(mean / n == Approx(0.5).epsilon(0).margin(1e-6));
     // P(beta <= b) = b^(eta+1)/2 for b <= 1, P(beta > b) = b^-(eta+1)/2 for b >= 1.
-    CHECK(double(le1) / n == Approx(0.5).margin(0.004));
-    CHECK(double(le09) / n == Approx(0.5 * std::pow(0.9, eta + 1)).margin(0.002));
-    CHECK(double(gt11) / n == Approx(0.5 * std::pow(1.1, -(eta + 1))).margin(0.002));
-    CHECK(double(first_low) / n == Approx(0.5).margin(0.004));  // sides swapped half the time
+    CHECK(double(le1) / n == Approx(0.5).epsilon(0).margin(0.004));
+    CHECK(double(le09) / n == Approx(0.5 * std::pow(0.9, eta + 1)).epsilon(0).margin(0.002));
+    CHECK(double(gt11) / n == Approx(0.5 * std::pow(1.1, -(eta + 1))).epsilon(0).margin(0.002));
+    CHECK(double(first_low) / n == Approx(0.5).epsilon(0).margin(0.004));  // sides swapped half the time
   }
   SECTION("per-variable probability and equal parents") {
     const std::vector<double> lo(1000, 0.0), hi(1000, 1.0), p1(1000, 0.2), p2(1000, 0.8);
     sbx_crossover(p1, p2, lo, hi, 20, 0.5, rng, c1, c2);
     int crossed = 0;
     for (size_t k = 0; k < 1000; ++k) crossed += c1[k] != p1[k] && c1[k] != p2[k];
-    CHECK(crossed == Approx(500).margin(60));
+    CHECK(crossed == Approx(500).epsilon(0).margin(60));
     sbx_crossover(p1, p1, lo, hi, 20, 1.0, rng, c1, c2);
     CHECK(c1 == p1);
     CHECK(c2 == p1);
@@ -300,9 +300,9 @@ TEST_CASE("polynomial mutation: in bounds, rate and distribution", "[nsga2]") {
       gt005 += std::fabs(x[0] - 0.5) > 0.05;
       gt01 += std::fabs(x[0] - 0.5) > 0.1;
     }
-    CHECK(mean / n == Approx(0.5).margin(6e-4));  // 5 sigma
-    CHECK(double(gt005) / n == Approx(std::pow(0.95, eta + 1)).margin(0.004));
-    CHECK(double(gt01) / n == Approx(std::pow(0.9, eta + 1)).margin(0.003));
+    CHECK(mean / n == Approx(0.5).epsilon(0).margin(6e-4));  // 5 sigma
+    CHECK(double(gt005) / n == Approx(std::pow(0.95, eta + 1)).epsilon(0).margin(0.004));
+    CHECK(double(gt01) / n == Approx(std::pow(0.9, eta + 1)).epsilon(0).margin(0.003));
   }
   SECTION("rate") {
     const std::vector<double> lo(1000, 0.0), hi(1000, 1.0);
@@ -310,7 +310,7 @@ TEST_CASE("polynomial mutation: in bounds, rate and distribution", "[nsga2]") {
     polynomial_mutation(x, lo, hi, eta, 0.1, rng);
     int changed = 0;
     for (double v : x) changed += v != 0.5;
-    CHECK(changed == Approx(100).margin(35));
+    CHECK(changed == Approx(100).epsilon(0).margin(35));
     std::vector<double> y(1000, 0.5);
     polynomial_mutation(y, lo, hi, eta, 0.0, rng);
     CHECK(y == std::vector<double>(1000, 0.5));

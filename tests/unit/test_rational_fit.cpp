@@ -43,20 +43,20 @@ TEST_CASE("rational fit recovers a known 2/4 function from noiseless samples", "
   const RationalFit f = fit_rational(s.r, s.y, 2150, 2700, 2, 4);
   REQUIRE(f.a.size() == 3);
   REQUIRE(f.b.size() == 5);
-  for (size_t k = 0; k < a.size(); ++k) CHECK(f.a[k] == Approx(a[k]).margin(1e-10));
-  for (size_t k = 1; k < b.size(); ++k) CHECK(f.b[k] == Approx(b[k]).margin(1e-8));
+  for (size_t k = 0; k < a.size(); ++k) CHECK(f.a[k] == Approx(a[k]).epsilon(0).margin(1e-10));
+  for (size_t k = 1; k < b.size(); ++k) CHECK(f.b[k] == Approx(b[k]).epsilon(0).margin(1e-8));
   CHECK(f.rms < 1e-13);
   CHECK(f.min_denominator > 0);
   // Between the samples and in r units as well.
-  CHECK(f.value(2333.3) == Approx(rat(a, b, (2333.3 - 2425) / 275)).margin(1e-12));
+  CHECK(f.value(2333.3) == Approx(rat(a, b, (2333.3 - 2425) / 275)).epsilon(0).margin(1e-12));
 }
 
 TEST_CASE("rational fit recovers a 4/5 function (the paper's outer coils)", "[tcfit]") {
   const std::vector<double> a = {0.01, -0.04, 0.02, 0.015, -0.01}, b = {1, -0.3, 0.6, 0.2, -0.1, 0.15};
   const Samples s = samples_of(a, b, 4060, 4540, 50);
   const RationalFit f = fit_rational(s.r, s.y, 4060, 4540, 4, 5);
-  for (size_t k = 0; k < a.size(); ++k) CHECK(f.a[k] == Approx(a[k]).margin(1e-9));
-  for (size_t k = 1; k < b.size(); ++k) CHECK(f.b[k] == Approx(b[k]).margin(1e-7));
+  for (size_t k = 0; k < a.size(); ++k) CHECK(f.a[k] == Approx(a[k]).epsilon(0).margin(1e-9));
+  for (size_t k = 1; k < b.size(); ++k) CHECK(f.b[k] == Approx(b[k]).epsilon(0).margin(1e-7));
   CHECK(f.rms < 1e-12);
 }
 
@@ -68,7 +68,7 @@ TEST_CASE("coefficients in r reproduce the scaled fit", "[tcfit]") {
     double px = 0, pr = 0;
     for (size_t k = cx.size(); k-- > 0;) px = px * ((r - c) / h) + cx[k];
     for (size_t k = cr.size(); k-- > 0;) pr = pr * r + cr[k];
-    CHECK(pr == Approx(px).margin(1e-9));
+    CHECK(pr == Approx(px).epsilon(0).margin(1e-9));
   }
 }
 
@@ -77,8 +77,8 @@ TEST_CASE("real roots on an interval", "[tcfit]") {
   const std::vector<double> c = {-0.125, -0.25, 0.875, -0.25, 1};
   const auto roots = real_roots_in(c, -1, 1);
   REQUIRE(roots.size() == 2);
-  CHECK(roots[0] == Approx(-0.25).margin(1e-12));
-  CHECK(roots[1] == Approx(0.5).margin(1e-12));
+  CHECK(roots[0] == Approx(-0.25).epsilon(0).margin(1e-12));
+  CHECK(roots[1] == Approx(0.5).epsilon(0).margin(1e-12));
   CHECK(real_roots_in(c, 0.6, 2).empty());
 }
 

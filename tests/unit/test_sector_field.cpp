@@ -25,6 +25,14 @@ SectorFieldSpec ring_like() {
   s.grid.symmetry = 8;
   return s;
 }
+
+/// The shape on a magnet's centre line: both tanh edges half a width away along the arc,
+/// (1 + tanh(d / lambda))^2 / 4 with d = r w / 2 (turnfit-sector-field(5)); not exactly 1.
+double centre_shape(const SectorFieldSpec& s, double r_mm) {
+  const double d = r_mm * 0.5 * s.width_deg.at(r_mm) * 3.14159265358979323846 / 180;
+  const double e = 0.5 * (1 + std::tanh(d / s.fringe_mm));
+  return e * e;
+}
 }  // namespace
 
 TEST_CASE("sector field: radial tables are natural cubic splines, straight beyond the ends", "[field][sector]") {
@@ -36,7 +44,7 @@ TEST_CASE("sector field: radial tables are natural cubic splines, straight beyon
   for (double r : {2000.0, 2500.0}) {
     const double left = (t.at(r) - 2 * t.at(r - h) + t.at(r - 2 * h)) / (h * h);
     const double right = (t.at(r + 2 * h) - 2 * t.at(r + h) + t.at(r)) / (h * h);
-    CHECK(left == Approx(right).margin(1e-6));
+    CHECK(left == Approx(right).epsilon(0).margin(1e-6));
   }
   for (double r : {1200.0, 2200.0, 3900.0})
     CHECK(t.slope(r) == Approx((t.at(r + h) - t.at(r - h)) / (2 * h)).epsilon(1e-7));
@@ -56,11 +64,14 @@ TEST_CASE("sector field: radial tables are natural cubic splines, straight beyon
 TEST_CASE("sector field: the shape is 1 in a magnet, 0 in a valley, 1/2 on an edge", "[field][sector]") {
   const SectorFieldSpec s = ring_like();
   const double r = 3000, w = s.width_deg.at(r);
-  CHECK(sector_shape(s, r, 0) == Approx(1).margin(1e-12));
+  // On the centre line both edges are half a width away: (1 + tanh(d / lambda))^2 / 4 with
+  // d = r w / 2, 1 - 5e-12 here (the neighbours' tails, exp(-2 r (45 - w / 2) / lambda) ~ 1e-50,
+  // do not show). Exact up to rounding (1e-12).
+  CHECK(sector_shape(s, r, 0) == Approx(centre_shape(s, r)).epsilon(0).margin(1e-12));
   CHECK(sector_shape(s, r, 22.5) == Approx(0).margin(1e-12));
   // On the edge the rising tanh is 1/2 and the falling one, a magnet width away, is 1.
-  CHECK(sector_shape(s, r, w / 2) == Approx(0.5).margin(1e-12));
-  CHECK(sector_shape(s, r, -w / 2) == Approx(0.5).margin(1e-12));
+  CHECK(sector_shape(s, r, w / 2) == Approx(0.5).epsilon(0).margin(1e-12));
+  CHECK(sector_shape(s, r, -w / 2) == Approx(0.5).epsilon(0).margin(1e-12));
   // One edge length inside: (1 + tanh 1) / 2.
   const double one = s.fringe_mm / r * 180 / 3.14159265358979323846;
   CHECK(sector_shape(s, r, w / 2 - one) == Approx(0.5 * (1 + std::tanh(1.0))).epsilon(1e-12));
@@ -70,8 +81,8 @@ TEST_CASE("sector field: periodic in 360/N, mirror-symmetric without spiral", "[
   const SectorFieldSpec s = ring_like();
   for (double r : {1900.0, 2500.0, 4400.0})
     for (double th = -30; th < 30; th += 0.37) {
-      CHECK(sector_shape(s, r, th + 45) == Approx(sector_shape(s, r, th)).margin(1e-14));
-      CHECK(sector_shape(s, r, -th) == Approx(sector_shape(s, r, th)).margin(1e-14));
+      CHECK(sector_shape(s, r, th + 45) == Approx(sector_shape(s, r, th)).epsilon(0).margin(1e-14));
+      CHECK(sector_shape(s, r, -th) == Approx(sector_shape(s, r, th)).epsilon(0).margin(1e-14));
     }
 }
 
@@ -93,9 +104,11 @@ TEST_CASE("sector field: a spiral turns the centre line by tan(xi) ln(r / r0)", 
   s.spiral_r0_mm = 2000;
   const double r = 2000 * std::exp(0.5), centre = std::tan(30 * 3.14159265358979323846 / 180) * 0.5 * 180 /
                                                       3.14159265358979323846;
-  CHECK(sector_shape(s, 2000, 0) == Approx(1).margin(1e-12));
-  for (double d : {1.0, 5.0, 9.0}) CHECK(sector_shape(s, r, centre + d) == Approx(sector_shape(s, r, centre - d)).margin(1e-13));
-  CHECK(sector_shape(s, r, centre + 0.5 * s.width_deg.at(r)) == Approx(0.5).margin(1e-12));
+  // At r0 the centre line is at 0: the centred value (1 + tanh(d / lambda))^2 / 4 = 1 - 3e-7
+  // (width 18 deg at 2 m: d = 314 mm, 7.85 edge lengths), exact up to rounding.
+  CHECK(sector_shape(s, 2000, 0) == Approx(centre_shape(s, 2000)).epsilon(0).margin(1e-12));
+  for (double d : {1.0, 5.0, 9.0}) CHECK(sector_shape(s, r, centre + d) == Approx(sector_shape(s, r, centre - d)).epsilon(0).margin(1e-13));
+  CHECK(sector_shape(s, r, centre + 0.5 * s.width_deg.at(r)) == Approx(0.5).epsilon(0).margin(1e-12));
 }
 
 TEST_CASE("sector field: a spiral table turns the centre line at d theta_c / dr = tan(xi(r)) / r", "[field][sector]") {
@@ -111,7 +124,7 @@ TEST_CASE("sector field: a spiral table turns the centre line at d theta_c / dr 
   }
   // The magnet stays symmetric about the turned centre line.
   const double r = 4000, c = sector_centre_deg(s, r);
-  for (double d : {2.0, 8.0, 15.0}) CHECK(sector_shape(s, r, c + d) == Approx(sector_shape(s, r, c - d)).margin(1e-13));
+  for (double d : {2.0, 8.0, 15.0}) CHECK(sector_shape(s, r, c + d) == Approx(sector_shape(s, r, c - d)).epsilon(0).margin(1e-13));
 }
 
 TEST_CASE("sector field: JSON round trip gives the same field bit for bit", "[field][sector]") {

@@ -145,7 +145,7 @@ TEST_CASE("track physics: energy gain per turn on crest is the sum of V V_n(rho_
     const Kinematics k0 = kinematics(kMass, 1, e0);
     const double off_m = kC / omega_rev() / (kMass * std::pow(k0.gamma, 3) * k0.beta) * V;
     const double phase_bound_deg = kH * off_m / iso_radius(e0) / kDeg;
-    REQUIRE(off_m == Approx(0.0130).margin(1e-4));
+    REQUIRE(off_m == Approx(0.0130).epsilon(0).margin(1e-4));
     double e = e0, worst_formula = 0, worst_phase = 0, worst_rho_mm = 0, worst_t = 0;
     std::vector<double> e_after_kick;
     for (const auto& k : kicks) {
@@ -235,7 +235,7 @@ TEST_CASE("track physics: on crest in an isochronous field, 72 -> 590 MeV takes 
     // 0.002 mm (the four symmetric kicks centre the orbit between the gaps).
     const Kinematics kl = kinematics(kMass, 1, last.energy_MeV);
     const double dr_mm = kC / omega_rev() / (kMass * std::pow(kl.gamma, 3) * kl.beta) * V * 1e3;
-    CHECK(last.r_mm == Approx(iso_radius(last.energy_MeV) * 1e3).margin(dr_mm));
+    CHECK(last.r_mm == Approx(iso_radius(last.energy_MeV) * 1e3).epsilon(0).margin(dr_mm));
   }
 }
 
@@ -384,8 +384,8 @@ TEST_CASE("track physics: a probe shift moves every recorded radius by exactly t
   for (size_t i = 0; i < a.size(); ++i) {
     CHECK(b[i].turn == a[i].turn);
     worst = std::max(worst, std::fabs((a[i].r_mm - b[i].r_mm) - shift_mm));
-    CHECK(a[i].s_mm - b[i].s_mm == Approx(shift_mm).margin(1e-9));
-    CHECK(b[i].t_ns == Approx(a[i].t_ns).margin(1e-9));
+    CHECK(a[i].s_mm - b[i].s_mm == Approx(shift_mm).epsilon(0).margin(1e-9));
+    CHECK(b[i].t_ns == Approx(a[i].t_ns).epsilon(0).margin(1e-9));
     CHECK(b[i].energy_MeV == Approx(a[i].energy_MeV).epsilon(1e-14));
   }
   INFO("probe shift: max |dr - shift| = " << worst << " mm");
@@ -416,7 +416,7 @@ TEST_CASE("track physics: a probe shift moves every recorded radius by exactly t
     set_dvar(mach, "rri2shift", shift_mm);
     const TrackModel mm = make_track_model(mach);
     REQUIRE(mm.probes.size() == 1);
-    CHECK(mm.probes[0].shift_m == Approx(shift_mm * 1e-3).margin(1e-15));
+    CHECK(mm.probes[0].shift_m == Approx(shift_mm * 1e-3).epsilon(0).margin(1e-15));
   }
 }
 
@@ -553,8 +553,8 @@ TEST_CASE("track physics: the third-harmonic flat-top cavity flattens the energy
   // frequency): at 10 deg from crest that is < 4 V sin(10 deg) 0.0044 = 3e-4 MeV.
   for (int i = 0; i < 3; ++i) {
     const double x = (i - 1) * d;
-    CHECK(g_main[i] == Approx(4 * V * std::cos(x)).margin(3e-4));
-    CHECK(g_flat[i] == Approx(4 * V * std::cos(x) - vft * std::cos(3 * x)).margin(5e-4));
+    CHECK(g_main[i] == Approx(4 * V * std::cos(x)).epsilon(0).margin(3e-4));
+    CHECK(g_flat[i] == Approx(4 * V * std::cos(x) - vft * std::cos(3 * x)).epsilon(0).margin(5e-4));
   }
   const double curv_main = (g_main[0] + g_main[2] - 2 * g_main[1]) / (d * d);
   const double curv_flat = (g_flat[0] + g_flat[2] - 2 * g_flat[1]) / (d * d);
@@ -568,9 +568,9 @@ TEST_CASE("track physics: the third-harmonic flat-top cavity flattens the energy
                               << curv_main << "; gains main " << g_main[0] << " " << g_main[1] << " " << g_main[2]
                               << ", flat " << g_flat[0] << " " << g_flat[1] << " " << g_flat[2]);
   CHECK(std::fabs(curv_flat) < 0.05 * std::fabs(curv_main));
-  CHECK(curv_flat == Approx(curv_flat_expected).margin(5e-4));
+  CHECK(curv_flat == Approx(curv_flat_expected).epsilon(0).margin(5e-4));
   // On crest the flat-top takes exactly V_ft off the main gain.
-  CHECK(g_flat[1] == Approx(g_main[1] - vft).margin(1e-4));
+  CHECK(g_flat[1] == Approx(g_main[1] - vft).epsilon(0).margin(1e-4));
 }
 
 TEST_CASE("track physics: probe crossings are interpolated between time steps", "[track][physics]") {
