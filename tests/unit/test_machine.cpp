@@ -18,6 +18,12 @@ using turnfit::test::test_file;
 
 namespace {
 
+// Values parsed from the JSON files or made by one or two decimal operations on them (0.847 + 0.25
+// * 0.1, 0.847 * 0.95, 72.2 / 1000): exact up to a few ulps of double rounding. 1e-12 relative is
+// ~4500 ulps, and a millionth of the smallest digit these files carry (1e-6 relative): a wrong
+// scale, sum or bound shows.
+constexpr double kArith = 1e-12;
+
 // Runs f, requires a turnfit::Error with the given exit code, and returns its message.
 template <class F>
 std::string error_of(F&& f, ExitCode code) {
@@ -153,16 +159,16 @@ TEST_CASE("machine: built-in design variables have the documented targets and bo
   const auto& v1 = m.dvars.at("vmaincav1");
   REQUIRE(v1.targets.size() == 1);
   CHECK(v1.targets[0].pointer == "/cavities/0/voltage_MV");
-  CHECK(v1.lower == Approx(0.847 * 0.95));
-  CHECK(v1.upper == Approx(0.847 * 1.05));
+  CHECK(v1.lower == Approx(0.847 * 0.95).epsilon(kArith));
+  CHECK(v1.upper == Approx(0.847 * 1.05).epsilon(kArith));
   const auto& vft = m.dvars.at("vftcav");
   CHECK(vft.targets[0].pointer == "/cavities/2/voltage_MV");
   const auto& be = m.dvars.at("benergy");
   CHECK(be.unit == "GeV");
   CHECK(be.targets[0].scale == 1000);
-  CHECK(be.lower == Approx(0.0715));
-  CHECK(be.upper == Approx(0.0725));
-  CHECK(turnfit::dvar_value(m, "benergy") == Approx(0.072));
+  CHECK(be.lower == Approx(0.0715).epsilon(kArith));
+  CHECK(be.upper == Approx(0.0725).epsilon(kArith));
+  CHECK(turnfit::dvar_value(m, "benergy") == Approx(0.072).epsilon(kArith));
   const auto& vc = m.dvars.at("vchange");
   REQUIRE(vc.targets.size() == 4);
   for (const auto& t : vc.targets) {
@@ -172,17 +178,17 @@ TEST_CASE("machine: built-in design variables have the documented targets and bo
   CHECK(vc.lower == -0.2);
   CHECK(vc.upper == 0.2);
   CHECK(m.dvars.at("phimain2").lower == 124);
-  CHECK(m.dvars.at("phirfft").upper == Approx(154.4));
+  CHECK(m.dvars.at("phirfft").upper == Approx(154.4).epsilon(kArith));
   CHECK(m.dvars.at("pdisft").lower == 447);
   CHECK(m.dvars.at("rmainshift3").upper == 5);
   CHECK(m.dvars.at("rrlphi").lower == 169);
   CHECK(m.dvars.at("rrlshift").targets[0].pointer == "/probes/1/shift_mm");
   CHECK(m.dvars.at("rinit").upper == 2050);
-  CHECK(m.dvars.at("prinit").lower == Approx(-0.0204));
+  CHECK(m.dvars.at("prinit").lower == Approx(-0.0204).epsilon(kArith));
   // TC1 has bmax -1e-3 T: bounds are symmetric, |v| + 2 mT.
-  CHECK(m.dvars.at("tc01mb").lower == Approx(-3e-3));
-  CHECK(m.dvars.at("tc01mb").upper == Approx(3e-3));
-  CHECK(m.dvars.at("tc02mb").upper == Approx(2e-3));
+  CHECK(m.dvars.at("tc01mb").lower == Approx(-3e-3).epsilon(kArith));
+  CHECK(m.dvars.at("tc01mb").upper == Approx(3e-3).epsilon(kArith));
+  CHECK(m.dvars.at("tc02mb").upper == Approx(2e-3).epsilon(kArith));
   // rri2phi bounds are overridden by the file, its target is not.
   CHECK(m.dvars.at("rri2phi").lower == 183);
   CHECK(m.dvars.at("rri2phi").upper == 187);
@@ -382,7 +388,7 @@ TEST_CASE("machine: particle species and masses") {
   CHECK(with({{"species", "alpha"}}).particle.charge_e == 2);
   CHECK(with({{"species", "alpha"}}).particle.mass_MeV == 3727.3794066);
   CHECK(with({{"species", "h2+"}}).particle.mass_MeV ==
-        Approx(2 * 938.27208816 + 0.51099895 - 16.25e-6));
+        Approx(2 * 938.27208816 + 0.51099895 - 16.25e-6).epsilon(kArith));
   auto custom = with({{"species", "custom"}, {"mass_MeV", 139.57039}, {"charge_e", -1}});
   CHECK(custom.particle.mass_MeV == 139.57039);
   CHECK(custom.particle.charge_e == -1);
@@ -460,8 +466,8 @@ TEST_CASE("machine: --set by design-variable name and by JSON pointer") {
                           "/trimcoils/0/coefnum/2=0.07", "tc17mb=0.002", "rri2phi=186.5"});
   CHECK(cavity(m, "main2").voltage_MV == 0.86);
   CHECK(turnfit::dvar_value(m, "vmaincav2") == 0.86);
-  CHECK(m.injection->energy_MeV == Approx(72.2));
-  CHECK(turnfit::dvar_value(m, "benergy") == Approx(0.0722));
+  CHECK(m.injection->energy_MeV == Approx(72.2).epsilon(kArith));
+  CHECK(turnfit::dvar_value(m, "benergy") == Approx(0.0722).epsilon(kArith));
   CHECK(m.rf.frequency_MHz == 50.6);
   CHECK(m.trimcoils[0].coefnum[2] == 0.07);
   CHECK(m.trimcoils[16].bmax_T == 0.002);
@@ -534,43 +540,43 @@ TEST_CASE("machine: vchange adds a quarter to each main cavity and does not accu
   Machine m = psi();
   turnfit::set_dvar(m, "vchange", 0.1);
   for (int k = 1; k <= 4; ++k)
-    CHECK(cavity(m, "main" + std::to_string(k)).voltage_MV == Approx(0.872));
+    CHECK(cavity(m, "main" + std::to_string(k)).voltage_MV == Approx(0.872).epsilon(kArith));
   CHECK(cavity(m, "ft").voltage_MV == 0.555903);
-  CHECK(turnfit::dvar_value(m, "vchange") == Approx(0.1));
+  CHECK(turnfit::dvar_value(m, "vchange") == Approx(0.1).epsilon(kArith));
   // vmaincavK reads back the base voltage, without vchange's share.
-  CHECK(turnfit::dvar_value(m, "vmaincav1") == Approx(0.847));
+  CHECK(turnfit::dvar_value(m, "vmaincav1") == Approx(0.847).epsilon(kArith));
 
   turnfit::set_dvar(m, "vchange", 0.1);  // the same value again: no change
-  CHECK(cavity(m, "main3").voltage_MV == Approx(0.872));
+  CHECK(cavity(m, "main3").voltage_MV == Approx(0.872).epsilon(kArith));
   turnfit::apply_sets(m, {"vchange=-0.04"});
-  CHECK(cavity(m, "main3").voltage_MV == Approx(0.837));
+  CHECK(cavity(m, "main3").voltage_MV == Approx(0.837).epsilon(kArith));
   turnfit::set_dvar(m, "vchange", 0);
-  CHECK(cavity(m, "main3").voltage_MV == Approx(0.847));
+  CHECK(cavity(m, "main3").voltage_MV == Approx(0.847).epsilon(kArith));
 
   // Order does not matter when a replacing and an adding variable hit the same voltage.
   Machine a = psi(), b = psi();
   turnfit::apply_sets(a, {"vchange=0.2", "vmaincav1=0.86"});
   turnfit::apply_sets(b, {"vmaincav1=0.86", "vchange=0.2"});
-  CHECK(cavity(a, "main1").voltage_MV == Approx(0.91));
-  CHECK(cavity(b, "main1").voltage_MV == Approx(0.91));
-  CHECK(cavity(a, "main2").voltage_MV == Approx(0.897));
-  CHECK(turnfit::dvar_value(a, "vmaincav1") == Approx(0.86));
+  CHECK(cavity(a, "main1").voltage_MV == Approx(0.91).epsilon(kArith));
+  CHECK(cavity(b, "main1").voltage_MV == Approx(0.91).epsilon(kArith));
+  CHECK(cavity(a, "main2").voltage_MV == Approx(0.897).epsilon(kArith));
+  CHECK(turnfit::dvar_value(a, "vmaincav1") == Approx(0.86).epsilon(kArith));
   // A pointer write sets the base too.
   turnfit::apply_sets(a, {"/cavities/0/voltage_MV=0.85"});
-  CHECK(cavity(a, "main1").voltage_MV == Approx(0.9));
-  CHECK(doc_number(a, "/cavities/0/voltage_MV") == Approx(0.9));
+  CHECK(cavity(a, "main1").voltage_MV == Approx(0.9).epsilon(kArith));
+  CHECK(doc_number(a, "/cavities/0/voltage_MV") == Approx(0.9).epsilon(kArith));
 }
 
 TEST_CASE("machine: design variables from a file") {
   Machine m = psi();
   turnfit::apply_dvars_file(m, test_file("machine/dvars_ok.json"));
-  CHECK(cavity(m, "main4").voltage_MV == Approx(0.872));
-  CHECK(m.injection->energy_MeV == Approx(72.2));
+  CHECK(cavity(m, "main4").voltage_MV == Approx(0.872).epsilon(kArith));
+  CHECK(m.injection->energy_MeV == Approx(72.2).epsilon(kArith));
   CHECK(m.trimcoils[2].bmax_T == 0.0025);
   CHECK(m.rf.frequency_MHz == 50.6);
   // Applying the same file twice gives the same machine.
   turnfit::apply_dvars_file(m, test_file("machine/dvars_ok.json"));
-  CHECK(cavity(m, "main4").voltage_MV == Approx(0.872));
+  CHECK(cavity(m, "main4").voltage_MV == Approx(0.872).epsilon(kArith));
 
   Machine fresh = psi();
   std::string file = test_file("machine/dvars_unknown.json");
@@ -649,8 +655,8 @@ TEST_CASE("machine: the dvars section of a machine file is validated") {
   CHECK(m.dvars.size() == 50);
   turnfit::set_dvar(m, "pdisall", 1.5);
   turnfit::set_dvar(m, "pdismain1", 420);
-  CHECK(m.cavities[0].pdis_mm == Approx(421.5));
-  CHECK(m.cavities[1].pdis_mm == Approx(414.5));
-  CHECK(turnfit::dvar_value(m, "pdismain1") == Approx(420));
-  CHECK(turnfit::dvar_value(m, "pdisall") == Approx(1.5));
+  CHECK(m.cavities[0].pdis_mm == Approx(421.5).epsilon(kArith));
+  CHECK(m.cavities[1].pdis_mm == Approx(414.5).epsilon(kArith));
+  CHECK(turnfit::dvar_value(m, "pdismain1") == Approx(420).epsilon(kArith));
+  CHECK(turnfit::dvar_value(m, "pdisall") == Approx(1.5).epsilon(kArith));
 }

@@ -3,6 +3,7 @@
 // and the peaks of turnfit-synth profiles against the bunch centroids.
 #include <catch2/catch.hpp>
 
+#include <Eigen/Dense>
 #include <algorithm>
 #include <cmath>
 #include <random>
@@ -65,6 +66,48 @@ double rms_error(const PeakResult& r, const std::vector<double>& truth) {
   return std::sqrt(s / static_cast<double>(truth.size()));
 }
 
+/// Standard errors that white noise of rms `noise` leaves in a least-squares fit of the whole
+/// profile x (the model make_profile draws from: a Gaussian of height a_i, centre c_i and rms
+/// width w per turn, plus the straight baseline): sqrt of the diagonal of noise^2 (J^T J)^-1,
+/// J the model's Jacobian at the truth. The area a w sqrt(2 pi) by the propagation of errors.
+/// Overlap shows as correlation between neighbours and widens the errors of the close turns.
+struct FitErrors {
+  std::vector<double> height, centre, width, area;
+};
+
+FitErrors fit_errors(const std::vector<double>& x, const std::vector<double>& centres, double w, double noise,
+                     const std::vector<double>& areas = {}) {
+  const long n = static_cast<long>(centres.size()), p = 3 * n + 2;
+  Eigen::MatrixXd J(static_cast<long>(x.size()), p);
+  for (long k = 0; k < J.rows(); ++k) {
+    J(k, 3 * n) = 1;
+    J(k, 3 * n + 1) = x[static_cast<size_t>(k)] - x[0];
+    for (long i = 0; i < n; ++i) {
+      const double a = areas.empty() ? 1.0 : areas[static_cast<size_t>(i)];
+      const double u = (x[static_cast<size_t>(k)] - centres[static_cast<size_t>(i)]) / w, g = std::exp(-0.5 * u * u);
+      J(k, 3 * i) = g;                     // d/d height
+      J(k, 3 * i + 1) = a * g * u / w;      // d/d centre
+      J(k, 3 * i + 2) = a * g * u * u / w;  // d/d width
+    }
+  }
+  const Eigen::MatrixXd cov = noise * noise * (J.transpose() * J).inverse();
+  FitErrors e;
+  const double s2pi = std::sqrt(2 * M_PI);
+  for (long i = 0; i < n; ++i) {
+    const double a = areas.empty() ? 1.0 : areas[static_cast<size_t>(i)];
+    const long h = 3 * i, c = h + 1, v = h + 2;
+    e.height.push_back(std::sqrt(cov(h, h)));
+    e.centre.push_back(std::sqrt(cov(c, c)));
+    e.width.push_back(std::sqrt(cov(v, v)));
+    // area = a w sqrt(2 pi): gradient (w, a) sqrt(2 pi).
+    e.area.push_back(s2pi * std::sqrt(w * w * cov(h, h) + a * a * cov(v, v) + 2 * a * w * cov(h, v)));
+  }
+  return e;
+}
+
+/// Standard errors for a family of checks: two-sided 1.4e-5 per value, 1% over 720 values.
+constexpr double kFitK = 4.35;
+
 int count_flag(const PeakResult& r, unsigned flag) {
   return static_cast<int>(std::count_if(r.peaks.begin(), r.peaks.end(), [&](const Peak& p) { return (p.flags & flag) != 0; }));
 }
@@ -73,9 +116,17 @@ int count_flag(const PeakResult& r, unsigned flag) {
 
 TEST_CASE("peaks: separations from 25 mm down to 4 mm, sigma 1.5 mm, noise and baseline", "[peaks]") {
   // 60 turns, separation 25 -> 4 mm: the last turns overlap (4 mm = 2.7 sigma), as at RRL.
+  // Tolerances of the fitted heights and (--position fit) centres: k standard errors of a
+  // least-squares fit of the whole profile with noise 0.005 (fit_errors; an isolated turn: height
+  // 0.0038, centre 0.0046 mm; the 4 mm pairs up to 0.015 mm). k = kFitK (4.35): two-sided 1.4e-5
+  // per value, 1% over the 720 values checked here and in the widths/areas case below (3 seeds,
+  // 60 turns, 4 quantities). Was heights +-0.05 and an rms of the centres below 0.03 mm (no source).
+  // Measured: heights at most 4.1, centres 3.7 standard errors.
   const auto truth = falling_separations(2100, 25, 4, 60);
+  const double k = kFitK;
   for (unsigned seed : {1u, 2u, 3u}) {
     const auto p = make_profile(truth, 1.5, 2080, truth.back() + 20, 0.5, 0.005, seed);
+    const FitErrors fe = fit_errors(p.x, truth, 1.5, 0.005);
     for (bool centroid : {false, true}) {
       PeakSettings s;
       s.centroid = centroid;
@@ -83,17 +134,52 @@ TEST_CASE("peaks: separations from 25 mm down to 4 mm, sigma 1.5 mm, noise and b
       INFO("seed " << seed << " centroid " << centroid);
       REQUIRE(r.peaks.size() == truth.size());  // every turn, nothing spurious
       CHECK(max_error(r, truth) < 0.1);  // turnfit-peakfind(1) ACCURACY: largest error below 0.1 mm
-      CHECK(rms_error(r, truth) < 0.03);
       CHECK(r.peaks.front().turn == 9);
       CHECK(r.peaks.back().turn == 68);
       CHECK(count_flag(r, kPeakMerged | kPeakWide | kPeakGap | kPeakWeak) == 0);
-      // Heights, widths and areas of the fitted turns.
-      for (const auto& pk : r.peaks) {
-        CHECK(pk.height == Approx(1.0).epsilon(0).margin(0.05));
-        CHECK(pk.width_mm == Approx(1.5).epsilon(0).margin(0.08));
-        CHECK(pk.area == Approx(1.5 * std::sqrt(2 * M_PI)).epsilon(0.05));
+      // Heights of the fitted turns, and with --position fit the centres.
+      for (size_t i = 0; i < truth.size(); ++i) {
+        const Peak& pk = r.peaks[i];
+        INFO("turn " << i << " at " << truth[i]);
+        CHECK(pk.height == Approx(1.0).epsilon(0).margin(k * fe.height[i]));
+        if (!centroid) CHECK(pk.r_mm == Approx(truth[i]).epsilon(0).margin(k * fe.centre[i]));
       }
     }
+  }
+}
+
+TEST_CASE("peaks: widths and areas of the falling-separation profile, with their known shortfall (regression)",
+          "[peaks][regression]") {
+  // The profiles of the case above. The noise alone (fit_errors, k = kFitK) allows an isolated
+  // turn 0.0046 mm of width and 0.38% of area, but peakfind's widths and areas come out low by
+  // more: their means over 20 turns fall short by 0.003-0.004 mm and 0.4% where turns are 25-18 mm
+  // apart, and by 0.007-0.011 mm and 0.8-1.1% where they are 11-4 mm apart (3 seeds; up to 5.5
+  // standard errors for one turn), a bias, not noise (the baseline, see turnfit-peakfind(1)
+  // ALGORITHM 1, is the likely cause; reported under issue 14). No page documents widths or
+  // areas; the split of merged turns compares areas with a ratio rounded to an integer, which a
+  // 1% shortfall does not move. Guards: the shortfall must not grow. Bound: k standard errors
+  // plus the largest measured group mean (0.011 mm, 1.1%). Was +-0.08 mm and 5% for every turn.
+  const auto truth = falling_separations(2100, 25, 4, 60);
+  const double k = kFitK, area = 1.5 * std::sqrt(2 * M_PI);
+  for (unsigned seed : {1u, 2u, 3u}) {
+    const auto p = make_profile(truth, 1.5, 2080, truth.back() + 20, 0.5, 0.005, seed);
+    const FitErrors fe = fit_errors(p.x, truth, 1.5, 0.005);
+    const PeakResult r = find_peaks(p.x, p.y, PeakSettings{}, 9);
+    REQUIRE(r.peaks.size() == truth.size());
+    double dw = 0, da = 0;
+    for (size_t i = 0; i < truth.size(); ++i) {
+      const Peak& pk = r.peaks[i];
+      INFO("seed " << seed << " turn " << i << " at " << truth[i]);
+      CHECK(pk.width_mm == Approx(1.5).epsilon(0).margin(0.011 + k * fe.width[i]));
+      CHECK(pk.area == Approx(area).epsilon(0).margin(0.011 * area + k * fe.area[i]));
+      dw += (pk.width_mm - 1.5) / 60;
+      da += (pk.area / area - 1) / 60;
+    }
+    // Over all 60 turns the mean shortfall (measured 0.006-0.008 mm, 0.7-0.8%) stays within the
+    // allowance plus k standard errors of a mean (the isolated turn's over sqrt(60)).
+    CAPTURE(dw, da);
+    CHECK(std::fabs(dw) < 0.011 + k * 0.0046 / std::sqrt(60.0));
+    CHECK(std::fabs(da) < 0.011 + k * 0.0038 / std::sqrt(60.0));
   }
 }
 
@@ -183,10 +269,20 @@ TEST_CASE("peaks: thresholds reject noise, a lone turn in noise is found once", 
     CHECK(r.peaks.empty());
   }
   SECTION("one turn, 20 noise rms high") {
+    // Standard errors at noise/height 0.05: the fitted centre (noise/height) sqrt(2 w step /
+    // sqrt(pi)) = 0.046 mm; the default centroid over +-3 widths (+-4.5 mm, 19 readings)
+    // noise sqrt(sum (x - x0)^2) / sum y = 0.05 x 11.9 / 7.52 = 0.079 mm. Bounds: 3.29 of them
+    // (two-sided 1e-3 each): 0.15 and 0.26 mm (was 0.15 mm for the centroid, 1.9 standard errors).
     const auto p = make_profile({2150.3}, 1.5, 2000, 2300, 0.5, 0.05, 9);
     const PeakResult r = find_peaks(p.x, p.y, PeakSettings{}, 1);
     REQUIRE(r.peaks.size() == 1);
-    CHECK(r.peaks[0].r_mm == Approx(2150.3).epsilon(0).margin(0.15));
+    CHECK(r.peaks[0].r_mm == Approx(2150.3).epsilon(0).margin(3.29 * 0.079));
+    PeakSettings fit;
+    fit.centroid = false;
+    const PeakResult rf = find_peaks(p.x, p.y, fit, 1);
+    REQUIRE(rf.peaks.size() == 1);
+    CHECK(rf.peaks[0].r_mm == Approx(2150.3).epsilon(0).margin(3.29 * 0.046));
+    CAPTURE(r.peaks[0].r_mm, rf.peaks[0].r_mm);
   }
   SECTION("a small bump below --min-height is not a turn; above it, a weak one") {
     const std::vector<double> c{2100, 2120, 2140, 2160, 2180};
@@ -306,9 +402,10 @@ TEST_CASE("peaks: peakfind writes the peaks table and its JSON form", "[peaks]")
   CHECK(error_code([&] { std::ostringstream x; peakfind(prof, o, x); }) == 64);
 }
 
-TEST_CASE("peaks: turnfit-synth profiles: every turn at its bunch centroid", "[peaks]") {
-  // The synth test machine (uniform isochronous field, 12 turns at the probe P0, about 22 mm
-  // apart): the wire profile of a tracked bunch with the default noise and baseline.
+namespace {
+/// The synth test machine's P0 profile (uniform isochronous field, 12 turns about 22 mm apart,
+/// default noise and baseline) and the bunch centroids there, sorted.
+std::pair<SynthProfile, std::vector<double>> synth_profile() {
   const Machine m = load_machine(std::string(TURNFIT_TEST_DIR) + "/cli/data/synth_iso.json");
   SynthSettings st;
   st.track.turns = 12;
@@ -317,18 +414,39 @@ TEST_CASE("peaks: turnfit-synth profiles: every turn at its bunch centroid", "[p
   st.phases = false;
   const SynthResult res = synthesize(m, st);
   REQUIRE(res.profiles.size() == 1);
-  const SynthProfile& prof = res.profiles[0];
   std::vector<double> truth;
   for (const auto& c : res.centroids)
     if (c.probe == 0) truth.push_back(c.r_mm);
   std::sort(truth.begin(), truth.end());
-  for (bool centroid : {false, true}) {
-    PeakSettings s;
-    s.centroid = centroid;
-    const PeakResult r = find_peaks(prof.position_mm, prof.intensity, s, 1);
-    INFO("centroid " << centroid);
-    REQUIRE(r.peaks.size() == truth.size());
-    CHECK(max_error(r, truth) < (centroid ? 0.05 : 0.15));
-    CHECK(count_flag(r, ~0u) == 0);
-  }
+  return {res.profiles[0], truth};
+}
+}  // namespace
+
+TEST_CASE("peaks: turnfit-synth profiles: every turn at its bunch centroid", "[peaks]") {
+  const auto [prof, truth] = synth_profile();
+  const PeakResult r = find_peaks(prof.position_mm, prof.intensity, PeakSettings{}, 1);
+  REQUIRE(r.peaks.size() == truth.size());
+  CAPTURE(max_error(r, truth));
+  // The deblended centroid is the bunch's mean position (turnfit-peakfind(1), Position reported):
+  // ACCURACY promises a largest error below 0.1 mm for separated turns (ring8: 0.009 and
+  // 0.058 mm). Half of that here, 0.05 mm (measured 0.021 mm).
+  CHECK(max_error(r, truth) < 0.05);
+  CHECK(count_flag(r, ~0u) == 0);
+}
+
+TEST_CASE("peaks: turnfit-synth profiles: the fitted centre's offset from the bunch centroid (regression)",
+          "[peaks][regression]") {
+  // --position fit reports the fitted Gaussian's centre, not the mean of a skewed turn
+  // (turnfit-peakfind(1), Position reported): on this machine it misses the bunch centroids by up
+  // to 0.124 mm, above ACCURACY's 0.1 mm (stated for sums of Gaussians) and ring8's 0.042/0.049 mm
+  // (reported under issue 14). Trusted as the turns' skew, not a fit error: the centroid of the
+  // same profile is within 0.021 mm (case above). Guards: the offset must not grow; 0.15 mm.
+  const auto [prof, truth] = synth_profile();
+  PeakSettings s;
+  s.centroid = false;
+  const PeakResult r = find_peaks(prof.position_mm, prof.intensity, s, 1);
+  REQUIRE(r.peaks.size() == truth.size());
+  CAPTURE(max_error(r, truth));
+  CHECK(max_error(r, truth) < 0.15);
+  CHECK(count_flag(r, ~0u) == 0);
 }

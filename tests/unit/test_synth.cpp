@@ -3,8 +3,10 @@
 #include <catch2/catch.hpp>
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <fstream>
+#include <map>
 #include <numeric>
 
 #include "../support.hpp"
@@ -109,6 +111,9 @@ TEST_CASE("synth: detector noise, baseline and normalization have the model's st
   std::vector<double> zero, top;
   for (size_t k = 0; k < n; ++k) (k < n / 2 ? zero : top).push_back(p.intensity[k] * p.scale_nA - p.signal_nA[k] - 3);
   // Electronic noise alone without beam; shot-like noise adds variance shot * signal.
+  // Monte Carlo bounds: the rms of n = 10000 normal draws has relative standard error
+  // 1/sqrt(2n) = 0.0071, so 0.03 is 4.2 standard errors; their mean has standard error
+  // 0.8/sqrt(n) = 0.008 nA, so 0.03 nA is 3.75 standard errors (a seed fixed: deterministic).
   CHECK(rms(zero) == Approx(0.8).epsilon(0.03));
   CHECK(rms(top) == Approx(std::sqrt(0.8 * 0.8 + 0.2 * 400)).epsilon(0.03));
   CHECK(std::fabs(std::accumulate(zero.begin(), zero.end(), 0.0) / zero.size()) < 0.03);
@@ -167,7 +172,9 @@ TEST_CASE("synth: profiles peak at the tracked turns, overlap comes from the tra
   const SynthProfile& p = r.profiles[0];
   CHECK(p.probe == "P0");
   CHECK(p.step_mm == 0.5);
-  CHECK(p.position_mm.front() == Approx(2000.25));
+  // The first reading sits half a step inside the probe's start (2000 mm): exact arithmetic
+  // (was a bare Approx, +-0.024 mm).
+  CHECK(p.position_mm.front() == Approx(2000.25).epsilon(0).margin(1e-9));
   // Every turn (25-45 mm apart here, beam rms ~1 mm) is one peak where the bunch crossed.
   const auto peaks = find_peaks(p, 0.2, 4.0);
   std::vector<double> truth;
@@ -232,6 +239,9 @@ TEST_CASE("synth: run-to-run drift draws the model's rms and moves the machine",
     sv += d.dvoltage_rel * d.dvoltage_rel;
     mr += d.dr_mm;
   }
+  // Monte Carlo bounds, n = 4000 draws: an rms has relative standard error 1/sqrt(2n) = 0.0112,
+  // so 0.05 is 4.5 standard errors; the mean of dr has standard error 0.7/sqrt(n) = 0.011 mm,
+  // so 0.05 mm is 4.5 standard errors.
   CHECK(std::sqrt(sr / n) == Approx(0.7).epsilon(0.05));
   CHECK(std::sqrt(sp / n) == Approx(0.3).epsilon(0.05));
   CHECK(std::sqrt(sv / n) == Approx(1e-4).epsilon(0.05));
@@ -248,13 +258,15 @@ TEST_CASE("synth: run-to-run drift draws the model's rms and moves the machine",
   for (const auto& c : m.cavities) CHECK(c.voltage_MV == Approx(1.001).epsilon(1e-12));
 }
 
-TEST_CASE("synth: run-to-run drift moves the PSI Ring's RRL turns as much as the paper measured", "[synth][psi]") {
-  // Frey et al. (seed paper, repeatability): RRL peak positions at 58 and 108 uA against 88 uA
-  // differ by sigma 0.51 and 0.58 mm, mean -0.09 and +0.003 mm, MAE 0.40 mm. Here: the turn
-  // positions of runs 1..10 of the example machine, compared pairwise (45 pairs): the spread is
-  // a random betatron oscillation, so a single pair varies a lot and the mean over pairs is
-  // what the defaults are set to.
-  TURNFIT_REQUIRE_SHARED(map, "data/psi-ring/bfield.dat");
+namespace {
+
+/// Pairwise RRL differences of runs 1..10 of the PSI Ring example (see the cases below).
+struct DriftStats {
+  double sigma = 0, mae = 0, mean_abs = 0;     // over the 45 pairs
+  double se_sigma = 0, se_mae = 0, se_mean = 0;  // their standard errors (5 disjoint pairs)
+};
+
+DriftStats psi_drift_stats(const std::string& map) {
   nlohmann::json doc = read_json(std::string(TURNFIT_TEST_DIR) + "/../examples/psi-ring/aeo.json");
   const std::string dir = std::string(TURNFIT_TEST_DIR) + "/../examples/psi-ring";
   // The shared data wherever it is (TURNFIT_SHARED), not only beside the project.
@@ -277,30 +289,82 @@ TEST_CASE("synth: run-to-run drift moves the PSI Ring's RRL turns as much as the
     REQUIRE(rrl.size() == 174);  // RRL turns 9-182 of the paper (a probe counts every crossing of its line)
     runs.push_back(rrl);
   }
-  double sig2 = 0, mae = 0, mean_abs = 0;
+  // Per pair: variance of the differences, their mean absolute value, |their mean|.
+  auto pair = [&](size_t a, size_t b) {
+    double s1 = 0, s2 = 0, sa = 0;
+    for (const auto& [turn, r] : runs[a]) {
+      const double d = runs[b].at(turn) - r;
+      s1 += d;
+      s2 += d * d;
+      sa += std::fabs(d);
+    }
+    const double n = static_cast<double>(runs[a].size()), mean = s1 / n;
+    return std::array<double, 3>{s2 / n - mean * mean, sa / n, std::fabs(mean)};
+  };
+  std::array<double, 3> all{0, 0, 0};
   int pairs = 0;
   for (size_t a = 0; a < runs.size(); ++a)
     for (size_t b = a + 1; b < runs.size(); ++b) {
-      double s1 = 0, s2 = 0, sa = 0;
-      for (const auto& [turn, r] : runs[a]) {
-        const double d = runs[b].at(turn) - r;
-        s1 += d;
-        s2 += d * d;
-        sa += std::fabs(d);
-      }
-      const double n = static_cast<double>(runs[a].size()), mean = s1 / n;
-      sig2 += s2 / n - mean * mean;
-      mae += sa / n;
-      mean_abs += std::fabs(mean);
+      const auto v = pair(a, b);
+      for (int i = 0; i < 3; ++i) all[i] += v[i];
       ++pairs;
     }
-  const double sigma = std::sqrt(sig2 / pairs);
-  CAPTURE(sigma, mae / pairs, mean_abs / pairs);
-  CHECK(sigma > 0.4);
-  CHECK(sigma < 0.75);
-  CHECK(mae / pairs > 0.3);
-  CHECK(mae / pairs < 0.6);
-  CHECK(mean_abs / pairs < 0.2);  // the paper's means are near 0: no systematic shift
+  DriftStats st;
+  st.sigma = std::sqrt(all[0] / pairs);
+  st.mae = all[1] / pairs;
+  st.mean_abs = all[2] / pairs;
+  // The 45 pairs share runs; the 5 disjoint pairs (1,2) ... (9,10) are independent draws, and
+  // the standard error of their mean, sd/sqrt(5), bounds that of the 45-pair mean (which uses
+  // the same runs and more of their combinations) from above.
+  std::array<std::vector<double>, 3> dis;
+  for (size_t a = 0; a + 1 < runs.size(); a += 2) {
+    const auto v = pair(a, a + 1);
+    for (int i = 0; i < 3; ++i) dis[i].push_back(v[i]);
+  }
+  auto se = [](const std::vector<double>& v) {
+    const double n = static_cast<double>(v.size()), mean = std::accumulate(v.begin(), v.end(), 0.0) / n;
+    double ss = 0;
+    for (double x : v) ss += (x - mean) * (x - mean);
+    return std::sqrt(ss / (n - 1) / n);
+  };
+  st.se_sigma = se(dis[0]) / (2 * st.sigma);  // of sigma = sqrt(mean variance)
+  st.se_mae = se(dis[1]);
+  st.se_mean = se(dis[2]);
+  return st;
+}
+
+}  // namespace
+
+TEST_CASE("synth: run-to-run drift moves the PSI Ring's RRL turns as much as the paper measured", "[synth][psi]") {
+  // Frey et al. (seed paper, repeatability): RRL peak positions at 58 and 108 uA against 88 uA
+  // differ by sigma 0.51 and 0.58 mm, mean -0.09 and +0.003 mm, MAE 0.40 mm. Here: the turn
+  // positions of runs 1..10 of the example machine, compared pairwise (45 pairs): the spread is
+  // a random betatron oscillation, so a single pair varies a lot (turnfit-synth(1): sigma 0.01
+  // to 1.2 mm) and the mean over pairs is what the defaults are set to.
+  // Bounds: the paper's figures widened by 3 standard errors of the mean over pairs (computed
+  // from the 5 independent pairs, see psi_drift_stats). Ten runs cannot pin the spread better
+  // than that: the [regression] case below pins this run's digits.
+  TURNFIT_REQUIRE_SHARED(map, "data/psi-ring/bfield.dat");
+  const DriftStats st = psi_drift_stats(map);
+  CAPTURE(st.sigma, st.mae, st.mean_abs, st.se_sigma, st.se_mae, st.se_mean);
+  CHECK(st.sigma > 0.51 - 3 * st.se_sigma);
+  CHECK(st.sigma < 0.58 + 3 * st.se_sigma);
+  CHECK(st.mae == Approx(0.40).epsilon(0).margin(3 * st.se_mae));
+  CHECK(st.mean_abs < 0.09 + 3 * st.se_mean);  // the paper's means are near 0: no systematic shift
+}
+
+TEST_CASE("synth: PSI Ring drift statistics of seeds 1-10 as turnfit-synth(1) states them (regression)",
+          "[synth][psi][regression]") {
+  // Guards the drift model's defaults (DriftModel), the seeding of runs and the tracking of the
+  // PSI Ring example: the fixed seeds make the statistics deterministic. turnfit-synth(1) (Run-to-run
+  // drift and repeatability) states this unit test's result, sigma 0.49, MAE 0.39, mean 0.06 mm;
+  // trusted because they agree with the paper's repeatability (case above) and with the 66-pair
+  // figures of the man page (0.48, 0.44, 0.09). Bounds: half the printed last digit (0.005 mm).
+  TURNFIT_REQUIRE_SHARED(map, "data/psi-ring/bfield.dat");
+  const DriftStats st = psi_drift_stats(map);
+  CHECK(st.sigma == Approx(0.49).epsilon(0).margin(0.005));
+  CHECK(st.mae == Approx(0.39).epsilon(0).margin(0.005));
+  CHECK(st.mean_abs == Approx(0.06).epsilon(0).margin(0.005));
 }
 
 TEST_CASE("synth: phase scans follow the phase equation: d(delta sin phi)/dr gives the coil's field", "[synth]") {
@@ -363,6 +427,11 @@ TEST_CASE("synth: phase scans follow the phase equation: d(delta sin phi)/dr giv
     truth.push_back(shape);
   }
   CAPTURE(worst, peak, sum_est, sum_true);
+  // Bounds: turnfit-synth(1), Trim coil phase scans, documents recovering the coil's field with
+  // this formula "to 5% in scale and 12% of the peak in shape" (that sentence reports this test:
+  // it is the documented accuracy, not an independent bound). Measured: scale 0.09%, shape 8.6%,
+  // Eq. 2's shape 8.4%. The shape error is the residual coherent oscillation (several mm at
+  // nu_r ~ 1, see above) differentiated over +-3 turns.
   CHECK(sum_est == Approx(sum_true).epsilon(0.05));  // scale and sign
   CHECK(worst < 0.12 * peak);                         // shape, turn by turn
   for (size_t i = 0; i < eq2.size(); ++i) peak_eq2 = std::max(peak_eq2, eq2[i]);
@@ -410,7 +479,13 @@ TEST_CASE("synth: phase-probe noise has the model's rms", "[synth]") {
   std::vector<double> d;
   for (size_t j = 0; j < ps.dsinphi.size(); ++j) d.push_back(ps.dsinphi[j] - ps.dsinphi_true[j]);
   // Two independent readings per radius near the crest: sqrt(2) 0.15 deg in radians.
-  CHECK(rms(d) == Approx(std::sqrt(2.0) * 0.15 * kPi / 180).epsilon(0.15));
+  // d = cos(phi) (n1 - n0) to first order, phi within degrees of the crest (cos(phi) ~ 1): rms
+  // sqrt(2) 0.15 deg. The sample rms of n readings has relative standard error 1/sqrt(2n) (n = 244:
+  // 4.5%): the bound is 3 standard errors, 13.6% (was a fixed 15%, 3.3 of them; measured -2.5%).
+  const double n_read = static_cast<double>(d.size()), se = 1 / std::sqrt(2 * n_read);
+  CAPTURE(n_read, se);
+  REQUIRE(n_read >= 100);
+  CHECK(rms(d) == Approx(std::sqrt(2.0) * 0.15 * kPi / 180).epsilon(3 * se));
 }
 
 TEST_CASE("synth: bad inputs are data errors naming the machine key", "[synth]") {
@@ -450,11 +525,14 @@ TEST_CASE("synth: truth.json holds the hidden values", "[synth]") {
   CHECK(t["format"] == "turnfit-synth-truth/1");
   CHECK(t["seed"] == 17);
   CHECK(t["current_uA"] == 108.0);
-  CHECK(t["dvars"]["rinit"].get<double>() == Approx(2097.4));
+  // The value set, written to JSON and read back: exact to the double's round trip (was a bare
+  // Approx, +-0.025 mm).
+  CHECK(t["dvars"]["rinit"].get<double>() == Approx(2097.4).epsilon(0).margin(1e-9));
   CHECK(t["effects"][0]["type"] == "first-harmonic");
   CHECK(t["drift"]["dr_mm"].get<double>() == r.drift.dr_mm);
   CHECK(t["drift"]["dr_mm"].get<double>() != 0);
   CHECK(t["turns"]["P0"].size() == r.centroids.size());
   CHECK(t["phase"]["coils"]["TCX"]["excitation_T"] == s.phase.excitation_T);
-  CHECK(t["machine_doc"]["injection"]["r_mm"].get<double>() == Approx(2097.4));  // the truth, not the drifted run
+  // The truth, not the drifted run (whose dr_mm is non-zero, checked above): exact.
+  CHECK(t["machine_doc"]["injection"]["r_mm"].get<double>() == Approx(2097.4).epsilon(0).margin(1e-9));
 }

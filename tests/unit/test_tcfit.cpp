@@ -166,7 +166,8 @@ TEST_CASE("tc-fit: coefficients about the window centre keep full precision, OPA
   auto far = [](double r) { return -0.05 * (0.5 + std::atan((r - 4300) / 40) / 3.14159265358979); };
   const CoilFit c = fit_coil(scan(4100, 4500, 10, far), o);
   REQUIRE(c.error.empty());
-  CHECK(c.coil.coef_origin_mm == Approx(4300));
+  // The window's centre, (4100 + 4500) / 2: exact in binary (was a bare Approx, +-0.05 mm).
+  CHECK(c.coil.coef_origin_mm == Approx(4300).epsilon(0).margin(1e-9));
   CHECK(c.representation_error < 1e-10);
   CHECK(c.opal_coil.coef_origin_mm == 0);
   CHECK(c.opal_representation_error >= c.representation_error);
