@@ -367,7 +367,14 @@ TEST_CASE("synth: PSI Ring drift statistics of seeds 1-10 as turnfit-synth(1) st
   CHECK(st.mean_abs == Approx(0.06).epsilon(0).margin(0.005));
 }
 
-TEST_CASE("synth: phase scans follow the phase equation: d(delta sin phi)/dr gives the coil's field", "[synth]") {
+namespace {
+/// The coil's field recovered from a noiseless phase scan with the phase equation, against the
+/// coil's shape (see phase_equation_scan).
+struct PhaseEquationResult {
+  double worst = 0, peak = 0, sum_est = 0, sum_true = 0, worst_eq2 = 0, peak_eq2 = 0, tail_change = 0, tail = 0;
+};
+
+PhaseEquationResult phase_equation_scan() {
   // Isochronous field B = B0 gamma(r) (field index k = gamma^2 - 1), gaps on crest. A field
   // change dB at fixed energy moves the orbit by dr/r = -dB / (B (1 + k)) and the revolution
   // frequency by dw/w = dB / (B gamma^2); per turn the RF phase slips by -2 pi h dw/w and the
@@ -426,21 +433,55 @@ TEST_CASE("synth: phase scans follow the phase equation: d(delta sin phi)/dr giv
     eq2.push_back(-(B * V * r_m) / (E * gamma * (gamma + 1)) * dsdr);
     truth.push_back(shape);
   }
-  CAPTURE(worst, peak, sum_est, sum_true);
-  // Bounds: turnfit-synth(1), Trim coil phase scans, documents recovering the coil's field with
-  // this formula "to 5% in scale and 12% of the peak in shape" (that sentence reports this test:
-  // it is the documented accuracy, not an independent bound). Measured: scale 0.09%, shape 8.6%,
-  // Eq. 2's shape 8.4%. The shape error is the residual coherent oscillation (several mm at
-  // nu_r ~ 1, see above) differentiated over +-3 turns.
-  CHECK(sum_est == Approx(sum_true).epsilon(0.05));  // scale and sign
-  CHECK(worst < 0.12 * peak);                         // shape, turn by turn
   for (size_t i = 0; i < eq2.size(); ++i) peak_eq2 = std::max(peak_eq2, eq2[i]);
   REQUIRE(peak_eq2 > 0);  // Eq. 2's sign: a stronger field gives a falling sin(phi)
   for (size_t i = 0; i < eq2.size(); ++i) worst_eq2 = std::max(worst_eq2, std::fabs(eq2[i] / peak_eq2 - truth[i]));
-  CHECK(worst_eq2 < 0.12);
-  // Beyond the coil delta sin(phi) stays where the coil left it.
-  CHECK(std::fabs(ps.dsinphi.back() - ps.dsinphi[ps.dsinphi.size() - 5]) < 0.02 * std::fabs(ps.dsinphi.back()));
-  CHECK(ps.dsinphi.back() < 0);
+  PhaseEquationResult res;
+  res.worst = worst;
+  res.peak = peak;
+  res.sum_est = sum_est;
+  res.sum_true = sum_true;
+  res.worst_eq2 = worst_eq2;
+  res.peak_eq2 = peak_eq2;
+  res.tail = ps.dsinphi.back();
+  res.tail_change = std::fabs(ps.dsinphi.back() - ps.dsinphi[ps.dsinphi.size() - 5]);
+  return res;
+}
+}  // namespace
+
+TEST_CASE("synth: phase scans follow the phase equation: d(delta sin phi)/dr gives the coil's field", "[synth]") {
+  // Invariants of the phase equation (the derivation above, turnfit-synth(1) Trim coil phase
+  // scans): a positive excitation makes sin(phi) fall across the coil and stay lower outside it,
+  // so the recovered field has the coil's sign. The scale and shape are in the [regression]
+  // case below: the man page's "5% in scale and 12% of the peak in shape" reports that test, so
+  // it is not an independent bound, and the scan is noiseless, so no noise bound applies.
+  const PhaseEquationResult r = phase_equation_scan();
+  CAPTURE(r.worst, r.peak, r.sum_est, r.sum_true, r.worst_eq2, r.tail, r.tail_change);
+  CHECK(r.sum_true > 0);
+  CHECK(r.sum_est > 0);  // the sign of dB from -(...) d sin(phi)/dr
+  CHECK(r.peak_eq2 > 0);  // Eq. 2's sign
+  CHECK(r.tail < 0);      // sin(phi) stays lower beyond the coil
+}
+
+TEST_CASE("synth: phase scans follow the phase equation: the recovered field's scale and shape (regression)",
+          "[synth][regression]") {
+  // Values from this program's own output (the isochronous test machine, 0.25 MV gaps, TCX at
+  // 1e-4 T, no noise): measured scale error 0.09%, shape error 8.6% of the peak, Eq. 2's shape
+  // 8.4%, the change of delta sin(phi) over the last 4 readings beyond the coil 1.27% of it.
+  // Guards the phase-scan pipeline (phase reading at the probe line, interpolation onto the
+  // probe radii, the difference of two runs). Trusted because the scale agrees with the
+  // first-order analytic relation (exact to first order, derived above) to 0.09%, and the shape
+  // error has a known cause: the residual coherent radial oscillation (several mm at nu_r ~ 1)
+  // differentiated over +-3 turns. Bounds: the measured value plus about 10% of it, for rounding
+  // differences between compilers over 160 tracked turns (an allowance, not a source). Was 5%
+  // and 12% citing turnfit-synth(1), whose sentence reports this test (circular); the
+  // flat-beyond check was 2% (no source).
+  const PhaseEquationResult r = phase_equation_scan();
+  CAPTURE(r.worst, r.peak, r.sum_est, r.sum_true, r.worst_eq2, r.tail, r.tail_change);
+  CHECK(r.sum_est == Approx(r.sum_true).epsilon(0.001));  // scale, measured 0.09%
+  CHECK(r.worst < 0.095 * r.peak);                           // shape, turn by turn, measured 8.6%
+  CHECK(r.worst_eq2 < 0.093);                                // Eq. 2's shape, measured 8.4%
+  CHECK(r.tail_change < 0.014 * std::fabs(r.tail));          // flat beyond the coil, measured 1.27%
 }
 
 TEST_CASE("synth: a phase scan excites the coil where the model's effects put it", "[synth]") {
