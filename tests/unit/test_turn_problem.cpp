@@ -13,6 +13,7 @@
 #include "turnfit/machine/machine.hpp"
 #include "turnfit/optimize/nsga2.hpp"
 #include "turnfit/optimize/problem_file.hpp"
+#include "turnfit/optimize/localsearch.hpp"
 #include "turnfit/optimize/turn_problem.hpp"
 #include "turnfit/track/model.hpp"
 #include "turnfit/track/tracker.hpp"
@@ -219,4 +220,47 @@ TEST_CASE("turn-pattern problem under NSGA-II: the same front on 1 and 2 threads
     CHECK(a.population[i].x == b.population[i].x);
     CHECK(a.population[i].f == b.population[i].f);
   }
+}
+
+TEST_CASE("local search (LM): a noiseless truth with four settings changed comes back", "[turn-problem][localsearch]") {
+  // The truth: ring8 with injection radius, angle, radial momentum and the main voltages'
+  // common change moved by a fifth of their bound ranges; its own turns are the measurement
+  // (noiseless, 17 digits). From the nominal machine the fit must return the truth's values:
+  // they are determined (the turns depend on each), and without noise the only error left is
+  // the convergence tolerance (relative cost change 1e-9).
+  TempDir tmp;
+  Machine truth = load_machine(ring8("machine.json"));
+  const std::vector<std::string> names = {"phiinit", "prinit", "rinit", "vchange"};
+  std::vector<double> xt;
+  for (const auto& n : names) {
+    const DesignVariable& dv = truth.dvars.at(n);
+    xt.push_back(dvar_value(truth, n) + 0.2 * (dv.upper - dv.lower) * (n == "prinit" ? -1 : 1));
+  }
+  set_dvars(truth, names, xt);
+  std::vector<TurnRecord> turns;
+  const TrackModel model = make_track_model(truth);
+  track_particle(model, injection_state(effective_injection(truth), truth.particle.mass_MeV),
+                 machine_track_settings(truth), turns);
+  std::string csv = "probe,turn,r_mm,height,area,width_mm,flag\n";
+  char buf[160];
+  for (const auto& t : turns) {
+    std::snprintf(buf, sizeof buf, "%s,%d,%.17g,1,1,1,ok\n", model.probes[static_cast<size_t>(t.probe)].name.c_str(),
+                  t.turn, t.r_mm);
+    csv += buf;
+  }
+  const std::string peaks = tmp.file("truth.csv", csv);
+  auto p = load_turn_problem(tmp.file("p.json", problem_text(peaks, "[\"phiinit\", \"prinit\", \"rinit\", \"vchange\"]",
+                                                              ", \"sigma_mm\": 0.01")));
+  LocalSearchSettings s;
+  s.threads = 2;
+  const LocalSearchResult r = local_search(*p, p->start(), s);
+  CHECK(r.before.linf_mm > 1);
+  CHECK(r.after.linf_mm < 1e-3);  // noiseless: a micrometre is far above the convergence limit
+  for (size_t j = 0; j < names.size(); ++j) {
+    CHECK(r.variables[j].determined);
+    const double range = p->upper()[j] - p->lower()[j];
+    CHECK(std::fabs(r.x[j] - xt[j]) < 1e-4 * range);  // 1e-4 of the range: far inside the 20 % moved
+  }
+  CHECK(r.sigma_source == "problem file (sigma_mm)");
+  CHECK(r.evaluations > 0);
 }
