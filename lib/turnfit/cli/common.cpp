@@ -6,9 +6,9 @@
 #include <cstdio>
 #include <iostream>
 #include <new>
-#include <thread>
 
 #include "turnfit/io/error.hpp"
+#include "turnfit/io/parallel.hpp"
 #include "turnfit/version.hpp"
 
 namespace turnfit::cli {
@@ -81,11 +81,7 @@ int run_tool(const std::string& tool, CLI::App& app, int argc, char** argv,
   }
 }
 
-unsigned resolve_threads(unsigned requested) {
-  if (requested > 0) return requested;
-  unsigned n = std::thread::hardware_concurrency();
-  return n == 0 ? 1 : n;
-}
+unsigned resolve_threads(unsigned requested) { return resolve_thread_count(requested); }
 
 nlohmann::json provenance() {
   if (!g_have_provenance) return nlohmann::json::object();

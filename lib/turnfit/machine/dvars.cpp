@@ -265,6 +265,25 @@ void set_dvar(Machine& m, const std::string& name, double value) {
   m = std::move(work);
 }
 
+void set_dvars(Machine& m, const std::vector<std::string>& names, const std::vector<double>& values) {
+  if (names.size() != values.size()) throw Error(ExitCode::software, "set_dvars: as many values as names");
+  Machine work = m;
+  for (size_t i = 0; i < names.size(); ++i) {
+    auto it = work.dvars.find(names[i]);
+    if (it == work.dvars.end()) throw usage_error(unknown_dvar(work, names[i]));
+    if (!std::isfinite(values[i])) throw usage_error("design variable " + names[i] + ": value is not finite");
+    std::string bad = bounds_problem(it->second, values[i]);
+    if (!bad.empty()) throw usage_error("design variable " + bad);
+    write_dvar(work, it->second, values[i]);
+  }
+  try {
+    revalidate(work);
+  } catch (const Error& e) {
+    throw usage_error(std::string("these design-variable values make the machine invalid: ") + e.what());
+  }
+  m = std::move(work);
+}
+
 void apply_sets(Machine& m, const std::vector<std::string>& assignments) {
   if (assignments.empty()) return;
   Machine work = m;

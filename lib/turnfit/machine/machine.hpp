@@ -271,6 +271,11 @@ void apply_dvars_file(Machine& m, const std::string& path);
 /// Sets one design variable (bounds checked; EX_USAGE on violation) and re-validates.
 void set_dvar(Machine& m, const std::string& name, double value);
 
+/// Sets several design variables at once, each within its bounds (EX_USAGE naming the first
+/// that is not), and re-validates once: an optimizer's form (one validation per design, not
+/// one per variable). m is unchanged on error.
+void set_dvars(Machine& m, const std::vector<std::string>& names, const std::vector<double>& values);
+
 /// The current value of a design variable, read back from the document.
 double dvar_value(const Machine& m, const std::string& name);
 

@@ -2,15 +2,14 @@
 #include "turnfit/optimize/nsga2.hpp"
 
 #include <algorithm>
-#include <atomic>
 #include <cmath>
 #include <map>
 #include <mutex>
 #include <numeric>
-#include <thread>
 #include <unordered_map>
 
 #include "turnfit/io/error.hpp"
+#include "turnfit/io/parallel.hpp"
 #include "turnfit/optimize/hypervolume.hpp"
 
 namespace turnfit {
@@ -355,40 +354,27 @@ void polynomial_mutation(std::vector<double>& x, const std::vector<double>& lo,
 // ---- thread pool ---------------------------------------------------------------------------
 
 ThreadPoolEvaluator::ThreadPoolEvaluator(Function fn, size_t threads)
-    : fn_(std::move(fn)), threads_(threads ? threads : std::max(1u, std::thread::hardware_concurrency())) {}
+    : fn_(std::move(fn)), threads_(resolve_thread_count(static_cast<unsigned>(threads))) {}
 
 ThreadPoolEvaluator::ThreadPoolEvaluator(const Problem& problem, size_t threads)
     : ThreadPoolEvaluator([&problem](const std::vector<double>& x) { return problem.evaluate(x); }, threads) {}
 
 void ThreadPoolEvaluator::evaluate(const std::vector<std::vector<double>>& batch, const EvaluationSink& done) {
-  std::atomic<size_t> next{0};
-  auto work = [&] {
-    for (size_t i; (i = next.fetch_add(1)) < batch.size();) {
-      Evaluation e;
-      try {
-        e = fn_(batch[i]);
-      } catch (const std::exception& ex) {
-        e = Evaluation{};
-        e.ok = false;
-        e.reason = ex.what();
-      } catch (...) {
-        e = Evaluation{};
-        e.ok = false;
-        e.reason = "unknown exception";
-      }
-      done(i, std::move(e));
+  parallel_for(batch.size(), static_cast<unsigned>(threads_), [&](size_t i, unsigned) {
+    Evaluation e;
+    try {
+      e = fn_(batch[i]);
+    } catch (const std::exception& ex) {
+      e = Evaluation{};
+      e.ok = false;
+      e.reason = ex.what();
+    } catch (...) {
+      e = Evaluation{};
+      e.ok = false;
+      e.reason = "unknown exception";
     }
-  };
-  const size_t nthreads = std::min(threads_, batch.size());
-  if (nthreads <= 1) {
-    work();
-    return;
-  }
-  std::vector<std::thread> pool;
-  pool.reserve(nthreads - 1);
-  for (size_t t = 0; t + 1 < nthreads; ++t) pool.emplace_back(work);
-  work();
-  for (auto& th : pool) th.join();
+    done(i, std::move(e));
+  });
 }
 
 // ---- the engine ----------------------------------------------------------------------------

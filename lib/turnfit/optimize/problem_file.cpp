@@ -1,5 +1,6 @@
 // Built-in and file-defined problems, and the external-command evaluator.
 #include "turnfit/optimize/problem_file.hpp"
+#include "turnfit/optimize/turn_problem.hpp"
 
 #include <algorithm>
 #include <cctype>
@@ -227,18 +228,37 @@ LoadedProblem load_problem(const std::string& name_or_file, const std::string& e
   FileReader rd{file};
   const nlohmann::json j = read_json(name_or_file);
   if (!j.is_object()) throw data_error(file, 0, "a problem file is a JSON object");
+  if (rd.text(rd.need(j, "format", ""), "format") != "turnfit-problem/1")
+    rd.fail("format", "expected \"turnfit-problem/1\"");
+  if (j.contains("machine")) {
+    // The turn-pattern kind: evaluated in process (track + compare).
+    if (!eval_cmd.empty())
+      throw usage_error(file + " is a turn-pattern problem (it names a machine), evaluated in process: "
+                               "--eval-cmd is for problems without one");
+    const std::string dir =
+        name_or_file == "-" ? std::string() : std::filesystem::absolute(name_or_file).parent_path().string();
+    auto tp = TurnPatternProblem::from_json(j, file, dir);
+    for (const auto& o : tp->objectives()) lp.objective_names.push_back(o.name.empty() ? objective_spec(o) : o.name);
+    if (tp->turn_count_constraint()) lp.constraint_names = {"turn-count"};
+    if (j.contains("reference")) {
+      const auto& r = j["reference"];
+      if (!r.is_array() || r.size() != lp.objective_names.size())
+        rd.fail("reference", "expected one number per objective");
+      for (size_t i = 0; i < r.size(); ++i) lp.reference.push_back(rd.number(r[i], "reference/" + std::to_string(i)));
+    }
+    lp.problem = std::move(tp);
+    lp.source = file;
+    return lp;
+  }
   static const std::set<std::string> known = {"format", "name", "variables", "objectives", "constraints",
                                               "evaluator", "reference", "description"};
   for (auto it = j.begin(); it != j.end(); ++it)
     if (!known.count(it.key())) {
-      if (it.key() == "machine" || it.key() == "measured" || it.key() == "dvars")
-        rd.fail(it.key(), "the in-process turn-pattern problem (machine, measured peaks, design variables) is "
-                          "not built in yet; evaluate it with an \"evaluator\" command");
+      if (it.key() == "peaks" || it.key() == "sigma_mm")
+        rd.fail(it.key(), "belongs to a turn-pattern problem, which names its \"machine\"");
       rd.fail(it.key(), "unknown key (known: format, name, variables, objectives, constraints, evaluator, "
-                        "reference, description)");
+                        "reference, description; a turn-pattern problem: machine, peaks, sigma_mm)");
     }
-  if (rd.text(rd.need(j, "format", ""), "format") != "turnfit-problem/1")
-    rd.fail("format", "expected \"turnfit-problem/1\"");
   const std::string name = j.contains("name") ? rd.text(j["name"], "name")
                                                : std::filesystem::path(file).stem().string();
   const auto& vars = rd.need(j, "variables", "");

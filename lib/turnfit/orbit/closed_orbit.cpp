@@ -8,9 +8,9 @@
 #include <cmath>
 #include <cstdio>
 #include <limits>
-#include <thread>
 
 #include "turnfit/io/error.hpp"
+#include "turnfit/io/parallel.hpp"
 #include "turnfit/io/text.hpp"
 #include "turnfit/physics/azimuth_eom.hpp"
 #include "turnfit/physics/particle.hpp"
@@ -264,42 +264,32 @@ std::vector<OrbitRow> orbit_table(const PolarFieldMap& map, const OrbitSettings&
   std::vector<OrbitRow> rows(n);
   constexpr size_t kChunk = 32;  // fixed, so results do not depend on the thread count
   const size_t chunks = (n + kChunk - 1) / kChunk;
-  std::atomic<size_t> next{0}, done{0};
-  auto worker = [&] {
-    for (size_t c; (c = next.fetch_add(1)) < chunks;) {
-      std::optional<std::pair<double, double>> guess;
-      const OrbitRow* prev = nullptr;
-      const OrbitRow* prev2 = nullptr;
-      for (size_t i = c * kChunk; i < std::min(n, (c + 1) * kChunk); ++i) {
-        if (prev && prev2) {  // linear extrapolation in energy along the chunk
-          const double w = (energies[i] - prev->energy_MeV) / (prev->energy_MeV - prev2->energy_MeV);
-          guess = std::make_pair((prev->r_mm + w * (prev->r_mm - prev2->r_mm)) * 1e-3,
-                                 (prev->pr_mrad + w * (prev->pr_mrad - prev2->pr_mrad)) * 1e-3);
-        } else if (prev) {
-          guess = std::make_pair(prev->r_mm * 1e-3, prev->pr_mrad * 1e-3);
-        } else {
-          guess.reset();
-        }
-        rows[i] = closed_orbit(map, s, energies[i], guess);
-        if (!std::isfinite(rows[i].r_mm) && guess) rows[i] = closed_orbit(map, s, energies[i]);
-        if (std::isfinite(rows[i].r_mm)) {
-          prev2 = prev;
-          prev = &rows[i];
-          if (prev2 && prev2->energy_MeV == prev->energy_MeV) prev2 = nullptr;
-        }
-        size_t d = done.fetch_add(1) + 1;
-        if (progress) progress(d, n);
+  std::atomic<size_t> done{0};
+  parallel_for(chunks, std::max(1u, threads), [&](size_t c, unsigned) {
+    std::optional<std::pair<double, double>> guess;
+    const OrbitRow* prev = nullptr;
+    const OrbitRow* prev2 = nullptr;
+    for (size_t i = c * kChunk; i < std::min(n, (c + 1) * kChunk); ++i) {
+      if (prev && prev2) {  // linear extrapolation in energy along the chunk
+        const double w = (energies[i] - prev->energy_MeV) / (prev->energy_MeV - prev2->energy_MeV);
+        guess = std::make_pair((prev->r_mm + w * (prev->r_mm - prev2->r_mm)) * 1e-3,
+                               (prev->pr_mrad + w * (prev->pr_mrad - prev2->pr_mrad)) * 1e-3);
+      } else if (prev) {
+        guess = std::make_pair(prev->r_mm * 1e-3, prev->pr_mrad * 1e-3);
+      } else {
+        guess.reset();
       }
+      rows[i] = closed_orbit(map, s, energies[i], guess);
+      if (!std::isfinite(rows[i].r_mm) && guess) rows[i] = closed_orbit(map, s, energies[i]);
+      if (std::isfinite(rows[i].r_mm)) {
+        prev2 = prev;
+        prev = &rows[i];
+        if (prev2 && prev2->energy_MeV == prev->energy_MeV) prev2 = nullptr;
+      }
+      size_t d = done.fetch_add(1) + 1;
+      if (progress) progress(d, n);
     }
-  };
-  threads = std::max(1u, std::min<unsigned>(threads, static_cast<unsigned>(std::max<size_t>(chunks, 1))));
-  if (threads == 1) {
-    worker();
-  } else {
-    std::vector<std::thread> pool;
-    for (unsigned t = 0; t < threads; ++t) pool.emplace_back(worker);
-    for (auto& t : pool) t.join();
-  }
+  });
   return rows;
 }
 

@@ -177,10 +177,15 @@ GapKick Gap::kick(double x, double y, double t_s, double mass_MeV, double charge
   return k;
 }
 
-std::vector<Gap> make_gaps(const Machine& m) {
+std::vector<Gap> make_gaps(const Machine& m, const std::map<std::string, VoltageProfile>* profiles) {
   std::vector<Gap> gaps;
   for (const auto& c : m.cavities) {
-    VoltageProfile p = c.profile.empty() ? VoltageProfile() : VoltageProfile::read(c.profile);
+    VoltageProfile p;
+    if (!c.profile.empty()) {
+      std::map<std::string, VoltageProfile>::const_iterator it;
+      if (profiles && (it = profiles->find(c.profile)) != profiles->end()) p = it->second;
+      else p = VoltageProfile::read(c.profile);
+    }
     gaps.emplace_back(c, m.rf.frequency_MHz, std::move(p));
   }
   return gaps;

@@ -2,6 +2,7 @@
 // transit-time factor, energy kick and RF magnetic deflection at the gap crossing.
 #pragma once
 
+#include <map>
 #include <string>
 #include <vector>
 
@@ -92,6 +93,7 @@ class Gap {
 };
 
 /// Builds the machine's gaps, reading each profile file (EX_NOINPUT / EX_DATAERR on failure).
-std::vector<Gap> make_gaps(const Machine& m);
+/// `profiles`, when given, holds profiles already read, by resolved path: those are not read again.
+std::vector<Gap> make_gaps(const Machine& m, const std::map<std::string, VoltageProfile>* profiles = nullptr);
 
 }  // namespace turnfit

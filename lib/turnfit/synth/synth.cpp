@@ -3,13 +3,11 @@
 #include "turnfit/synth/synth.hpp"
 
 #include <algorithm>
-#include <atomic>
 #include <cmath>
 #include <map>
-#include <mutex>
-#include <thread>
 
 #include "turnfit/io/error.hpp"
+#include "turnfit/io/parallel.hpp"
 #include "turnfit/physics/particle.hpp"
 #include "turnfit/track/model.hpp"
 
@@ -285,28 +283,13 @@ std::vector<std::vector<double>> phase_response(const Machine& m, const std::vec
   phase_history(m, base, st, r0, p0);
   const std::vector<double> s0 = sines(p0);
   std::vector<std::vector<double>> out(fields.size());
-  std::atomic<size_t> next{0};
-  std::mutex err_mutex;
-  std::exception_ptr err;
-  auto work = [&] {
-    for (size_t k; (k = next++) < fields.size();) {
-      try {
-        std::vector<double> r1, p1;
-        history_with(m, base, fields[k], base.coils.size(), st, r1, p1);
-        const std::vector<double> s1 = sines(p1);
-        std::vector<double>& o = out[k];
-        for (double r : r_mm) o.push_back((interpolate(r1, s1, r) - interpolate(r0, s0, r)) / fields[k].bmax_T);
-      } catch (...) {
-        std::lock_guard<std::mutex> lock(err_mutex);
-        if (!err) err = std::current_exception();
-      }
-    }
-  };
-  std::vector<std::thread> pool;
-  for (unsigned t = 1; t < std::max(1u, threads); ++t) pool.emplace_back(work);
-  work();
-  for (auto& t : pool) t.join();
-  if (err) std::rethrow_exception(err);
+  parallel_for(fields.size(), std::max(1u, threads), [&](size_t k, unsigned) {
+    std::vector<double> r1, p1;
+    history_with(m, base, fields[k], base.coils.size(), st, r1, p1);
+    const std::vector<double> s1 = sines(p1);
+    std::vector<double>& o = out[k];
+    for (double r : r_mm) o.push_back((interpolate(r1, s1, r) - interpolate(r0, s0, r)) / fields[k].bmax_T);
+  });
   return out;
 }
 

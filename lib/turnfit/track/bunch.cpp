@@ -5,10 +5,10 @@
 #include <algorithm>
 #include <atomic>
 #include <cmath>
-#include <thread>
 
 #include "turnfit/io/csv.hpp"
 #include "turnfit/io/error.hpp"
+#include "turnfit/io/parallel.hpp"
 #include "turnfit/physics/particle.hpp"
 
 namespace turnfit {
@@ -226,36 +226,29 @@ BunchResult track_bunch(const TrackModel& model, const std::vector<ParticleState
   std::vector<Partial> parts(nchunks);
   const unsigned nt = std::max(1u, std::min<unsigned>(threads, static_cast<unsigned>(std::max<size_t>(nchunks, 1))));
   std::vector<std::vector<ProbeHistogram>> hists(nt, empty_histograms(model));  // per worker
-  std::atomic<size_t> next{0}, done{0};
-  auto work = [&](unsigned w) {
-    std::vector<TurnRecord> turns;
-    for (;;) {
-      const size_t c = next.fetch_add(1);
-      if (c >= nchunks) return;
-      Partial& part = parts[c];
-      part.acc.resize(model.probes.size());
-      const size_t first = c * kChunk, last = std::min(n, first + kChunk);
-      for (size_t i = first; i < last; ++i) {
-        turns.clear();
-        TrackEnd end = track_particle(model, starts[i], settings, turns);
-        part.turns += end.turns;
-        for (const auto& tr : turns) {
-          auto& row = part.acc[static_cast<size_t>(tr.probe)];
-          if (row.size() < static_cast<size_t>(tr.turn)) row.resize(static_cast<size_t>(tr.turn));
-          row[static_cast<size_t>(tr.turn - 1)].add(tr);
-          add_crossing(hists[w], tr);
-        }
-        if (sink) sink(i, turns);
-        if (end.lost) part.lost.emplace_back(i, std::move(end));
+  std::atomic<size_t> done{0};
+  std::vector<std::vector<TurnRecord>> scratch(nt);  // per worker
+  parallel_for(nchunks, nt, [&](size_t c, unsigned w) {
+    std::vector<TurnRecord>& turns = scratch[w];
+    Partial& part = parts[c];
+    part.acc.resize(model.probes.size());
+    const size_t first = c * kChunk, last = std::min(n, first + kChunk);
+    for (size_t i = first; i < last; ++i) {
+      turns.clear();
+      TrackEnd end = track_particle(model, starts[i], settings, turns);
+      part.turns += end.turns;
+      for (const auto& tr : turns) {
+        auto& row = part.acc[static_cast<size_t>(tr.probe)];
+        if (row.size() < static_cast<size_t>(tr.turn)) row.resize(static_cast<size_t>(tr.turn));
+        row[static_cast<size_t>(tr.turn - 1)].add(tr);
+        add_crossing(hists[w], tr);
       }
-      const size_t d = done.fetch_add(last - first) + (last - first);
-      if (progress) progress(d);
+      if (sink) sink(i, turns);
+      if (end.lost) part.lost.emplace_back(i, std::move(end));
     }
-  };
-  std::vector<std::thread> pool;
-  for (unsigned k = 1; k < nt; ++k) pool.emplace_back(work, k);
-  work(0);
-  for (auto& t : pool) t.join();
+    const size_t d = done.fetch_add(last - first) + (last - first);
+    if (progress) progress(d);
+  });
 
   Partial all;
   all.acc.resize(model.probes.size());

@@ -8,6 +8,7 @@
 #include <utility>
 
 #include "turnfit/field/load.hpp"
+#include "turnfit/io/csv.hpp"
 #include "turnfit/io/error.hpp"
 #include "turnfit/physics/particle.hpp"
 
@@ -263,20 +264,67 @@ std::vector<std::string> effects_without_opal_input(const Effects& fx) {
   return lines;
 }
 
-TrackModel make_track_model(const Machine& m, const ModelOptions& opt) {
+namespace {
+
+bool same_main_field(const ModelFiles& f, const Machine& m) {
+  return f.map && f.map_path == m.field.map && f.map_format == m.field.format && f.map_symmetry == m.field.symmetry &&
+         f.map_scale == m.field.scale;
+}
+
+}  // namespace
+
+ModelFiles read_model_files(const Machine& m) {
+  ModelFiles f;
+  f.map = std::make_shared<const PolarFieldMap>(load_main_field(m));
+  f.map_path = m.field.map;
+  f.map_format = m.field.format;
+  f.map_symmetry = m.field.symmetry;
+  f.map_scale = m.field.scale;
+  for (const auto& c : m.cavities)
+    if (!c.profile.empty() && !f.profiles.count(c.profile)) f.profiles.emplace(c.profile, VoltageProfile::read(c.profile));
+  for (const auto& c : m.trimcoils) {
+    if (c.type != "table" || c.table.empty() || f.coil_tables.count(c.table)) continue;
+    CsvTable t = CsvTable::read(c.table);
+    t.require_columns({"r_mm", "b_shape"});
+    const size_t cr = t.column("r_mm"), cs = t.column("b_shape");
+    auto& tab = f.coil_tables[c.table];
+    for (size_t i = 0; i < t.rows(); ++i) {
+      tab.first.push_back(t.number(i, cr));
+      tab.second.push_back(t.number(i, cs));
+      if (i > 0 && !(tab.first[i] > tab.first[i - 1])) throw data_error(t.name(), t.line(i), "r_mm must increase strictly");
+    }
+    if (tab.first.size() < 2) throw data_error(t.name(), 0, "a trim coil table needs at least 2 rows");
+  }
+  return f;
+}
+
+TrackModel make_track_model(const Machine& m, const ModelOptions& opt, const ModelFiles* files) {
   TrackModel t;
-  t.map = load_main_field(m);
+  t.map = files && same_main_field(*files, m) ? *files->map : load_main_field(m);
   if (opt.opal_map) t.opal_map.emplace(t.map);
   const int sym = t.map.grid().symmetry;
   for (const auto& c : m.trimcoils) {
-    t.coils.emplace_back(c, sym);
+    const std::pair<std::vector<double>, std::vector<double>>* table = nullptr;
+    if (files && c.type == "table" && !c.table.empty()) {
+      auto it = files->coil_tables.find(c.table);
+      if (it != files->coil_tables.end()) table = &it->second;
+    }
+    if (table) {
+      TrimCoil mem = c;  // the table as read, in memory (same rows, same monotone slopes)
+      mem.table.clear();
+      mem.table_r_mm = table->first;
+      mem.table_shape = table->second;
+      t.coils.emplace_back(mem, sym);
+    } else {
+      t.coils.emplace_back(c, sym);
+    }
     // Lookup tables to 1e-7 of each coil's peak (1.4e-10 T for the PSI TC15), five orders
     // below the map's own precision, instead of exponentials at every field sample. The
     // OPAL-compatible model keeps OPAL's formula.
     if (!opt.opal_map) t.coils.back().tabulate(t.map.grid().r_min_m(), t.map.grid().r_max_m());
   }
   t.threshold_T = m.field.trimcoil_threshold_T;
-  t.gaps = make_gaps(m);
+  t.gaps = make_gaps(m, files ? &files->profiles : nullptr);
   for (const auto& p : m.probes) {
     ProbeLine l;
     l.name = p.name;

@@ -3,6 +3,8 @@
 
 #include <cmath>
 #include <array>
+#include <map>
+#include <memory>
 #include <optional>
 #include <string>
 #include <vector>
@@ -108,10 +110,29 @@ struct ModelOptions {
   bool opal_map = false;
 };
 
+/// What make_track_model reads from disk, read once: an optimizer builds a model per design,
+/// and its design variables never change a file name (they set numbers: voltages, phases,
+/// coil strengths, probe and injection positions). read_model_files fills it from a machine.
+struct ModelFiles {
+  /// The main field as load_main_field gives it (scaled), and what it was built from.
+  std::shared_ptr<const PolarFieldMap> map;
+  std::string map_path, map_format;
+  int map_symmetry = 0;
+  double map_scale = 1;
+  std::map<std::string, VoltageProfile> profiles;  ///< cavity profiles by resolved path
+  /// Trim coil tables (type table) by resolved path: radii [mm] and shape values.
+  std::map<std::string, std::pair<std::vector<double>, std::vector<double>>> coil_tables;
+};
+
+/// Reads every file the machine's model needs (EX_NOINPUT / EX_DATAERR naming the file).
+ModelFiles read_model_files(const Machine& m);
+
 /// Builds the model of a machine: reads the map, the cavity profiles and trim coil tables,
 /// then applies the machine's effects (all but injection-offset, which acts on the start:
-/// effective_injection in tracker.hpp).
-TrackModel make_track_model(const Machine& m, const ModelOptions& opt = {});
+/// effective_injection in tracker.hpp). With `files`, takes what they hold instead of reading
+/// it again (a file the machine names that `files` lacks, or a main field with another path,
+/// format, symmetry or scale, is still read).
+TrackModel make_track_model(const Machine& m, const ModelOptions& opt = {}, const ModelFiles* files = nullptr);
 
 /// Applies machine effects to a model built without them: field harmonics and sector strengths
 /// to the field, trimcoil-sectors to the coils (rebuilt, and tabulated unless opt.opal_map),

@@ -1,8 +1,9 @@
 // Rational least-squares fits with Ceres (paper Sec. II.C, Eq. 2: delta sin(phi) ~ f(r)/g(r)).
 #include "turnfit/trimcoil/rational_fit.hpp"
 
+#include "turnfit/optimize/ceres_logging.hpp"
+
 #include <ceres/ceres.h>
-#include <glog/logging.h>
 
 #include <algorithm>
 #include <complex>
@@ -293,18 +294,6 @@ std::vector<double> linearized_start(const Model& md, const std::vector<double>&
     }
   }
   return best;
-}
-
-/// Ceres logs through glog, and some of its lines (a minimizer giving up after refused steps:
-/// an expected outcome here, reported by the fit's own result) ignore logging_type = SILENT. A
-/// tool's stderr is its own: glog is initialized once and told to print only fatal errors.
-void quiet_ceres_logging() {
-  static std::once_flag once;
-  std::call_once(once, [] {
-    FLAGS_minloglevel = google::GLOG_FATAL;
-    FLAGS_logtostderr = true;
-    if (!google::IsGoogleLoggingInitialized()) google::InitGoogleLogging("turnfit");
-  });
 }
 
 Trial solve(const Model& md, const std::vector<double>& y, const std::vector<double>& guard, double min_pole,

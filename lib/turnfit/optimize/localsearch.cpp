@@ -1,0 +1,368 @@
+// Local search on a turn-pattern problem (see localsearch.hpp).
+#include "turnfit/optimize/localsearch.hpp"
+
+#include <ceres/ceres.h>
+
+#include <algorithm>
+#include <atomic>
+#include <chrono>
+#include <cmath>
+#include <ctime>
+#include <mutex>
+
+#include "turnfit/io/error.hpp"
+#include "turnfit/io/parallel.hpp"
+#include "turnfit/optimize/ceres_logging.hpp"
+
+namespace turnfit {
+
+FitSummary summarize(const TurnPatternProblem& p, const TurnPatternResult& r, const std::vector<double>& sigma_mm) {
+  FitSummary f;
+  f.ok = r.ok;
+  f.reason = r.reason;
+  if (!r.ok) return f;
+  f.violation = r.violation;
+  for (const auto& o : r.objectives) f.objectives.push_back(o.value);
+  ErrorAccumulator acc;
+  for (size_t i = 0; i < r.delta_mm.size(); ++i) {
+    if (!r.matched[i]) continue;
+    acc.add(r.delta_mm[i], i);
+    if (!sigma_mm.empty()) f.chi2 += (r.delta_mm[i] / sigma_mm[i]) * (r.delta_mm[i] / sigma_mm[i]);
+  }
+  const ErrorStats st = acc.stats();
+  f.matched = st.n;
+  f.linf_mm = st.linf_mm;
+  f.mae_mm = st.mae_mm;
+  f.rms_mm = st.rms_mm;
+  (void)p;
+  return f;
+}
+
+namespace {
+
+/// The residuals of the fit and their finite-difference Jacobian, in variables scaled to
+/// their bounds (u = (x - lower) / range, u in [0, 1]).
+struct Residuals {
+  const TurnPatternProblem& p;
+  size_t n = 0, nmeas = 0, nres = 0;
+  std::vector<double> lo, range;
+  std::vector<double> inv_sigma;   // per measured point
+  std::vector<double> prior_x0, prior_sigma_x;  // problem priors (sigma > 0)
+  std::vector<double> weak_u0;     // weak prior centre (the search's start), scaled
+  double weak = 1;
+  double miss_mm = 10;
+  unsigned threads = 1;
+  double h = 1e-6;
+  bool central = false;
+  std::vector<int> prior_kind;     // per variable: 0 none, 1 problem prior, 2 weak
+  mutable std::atomic<size_t> evaluations{0}, failed{0};
+  // The last Jacobian computed, and where (the final statistics reuse it).
+  mutable std::mutex mu;
+  mutable std::vector<double> jac_u;
+  mutable Eigen::MatrixXd jac;
+
+  explicit Residuals(const TurnPatternProblem& problem) : p(problem) {}
+
+  std::vector<double> x_of(const double* u) const {
+    std::vector<double> x(n);
+    for (size_t j = 0; j < n; ++j) x[j] = std::min(std::max(lo[j] + u[j] * range[j], p.lower()[j]), p.upper()[j]);
+    return x;
+  }
+
+  /// Residuals of the design at u into out (nres values).
+  void fill(const double* u, double* out) const {
+    const std::vector<double> x = x_of(u);
+    const TurnPatternResult r = p.simulate(x);
+    ++evaluations;
+    if (!r.ok) ++failed;
+    for (size_t i = 0; i < nmeas; ++i)
+      out[i] = (r.ok && r.matched[i] ? r.delta_mm[i] : miss_mm) * inv_sigma[i];
+    size_t k = nmeas;
+    for (size_t j = 0; j < n; ++j) {
+      if (prior_kind[j] == 1) out[k++] = (x[j] - prior_x0[j]) / prior_sigma_x[j];
+      else if (prior_kind[j] == 2) out[k++] = (u[j] - weak_u0[j]) / weak;
+    }
+  }
+
+  /// Residuals at u and the Jacobian d r / d u (row-major nres x n), its columns evaluated in
+  /// parallel. A forward step that would leave [0, 1] goes backward instead.
+  void fill_with_jacobian(const double* u, double* res, double* jac_rowmajor) const {
+    const size_t ncols = central ? 2 * n : n;
+    std::vector<std::vector<double>> out(ncols + 1, std::vector<double>(nres));
+    std::vector<double> step(n);
+    for (size_t j = 0; j < n; ++j) step[j] = u[j] + h <= 1 ? h : -h;
+    parallel_for(ncols + 1, threads, [&](size_t k, unsigned) {
+      std::vector<double> v(u, u + n);
+      if (k > 0) {
+        const size_t j = (k - 1) % n;
+        v[j] += k - 1 < n ? step[j] : -step[j];
+      }
+      fill(v.data(), out[k].data());
+    });
+    std::copy(out[0].begin(), out[0].end(), res);
+    Eigen::MatrixXd J(nres, n);
+    for (size_t j = 0; j < n; ++j)
+      for (size_t i = 0; i < nres; ++i)
+        J(i, j) = central ? (out[1 + j][i] - out[1 + n + j][i]) / (2 * step[j]) : (out[1 + j][i] - out[0][i]) / step[j];
+    if (jac_rowmajor)
+      for (size_t i = 0; i < nres; ++i)
+        for (size_t j = 0; j < n; ++j) jac_rowmajor[i * n + j] = J(i, j);
+    std::lock_guard<std::mutex> lock(mu);
+    jac_u.assign(u, u + n);
+    jac = std::move(J);
+  }
+};
+
+class TurnCost final : public ceres::CostFunction {
+ public:
+  explicit TurnCost(const Residuals& r) : r_(r) {
+    set_num_residuals(static_cast<int>(r.nres));
+    mutable_parameter_block_sizes()->push_back(static_cast<int>(r.n));
+  }
+  bool Evaluate(double const* const* params, double* res, double** jac) const override {
+    if (jac && jac[0]) r_.fill_with_jacobian(params[0], res, jac[0]);
+    else r_.fill(params[0], res);
+    return true;
+  }
+
+ private:
+  const Residuals& r_;
+};
+
+class ProgressCallback final : public ceres::IterationCallback {
+ public:
+  ProgressCallback(const LocalSearchSettings& s, int pass) : s_(s), pass_(pass) {}
+  ceres::CallbackReturnType operator()(const ceres::IterationSummary& it) override {
+    if (s_.progress) s_.progress(pass_, it.iteration, it.cost);
+    return ceres::SOLVER_CONTINUE;
+  }
+
+ private:
+  const LocalSearchSettings& s_;
+  int pass_;
+};
+
+/// One Levenberg-Marquardt pass from u (updated in place).
+ceres::Solver::Summary lm_pass(const Residuals& res, std::vector<double>& u, const LocalSearchSettings& s, int pass) {
+  ceres::Problem problem;
+  problem.AddResidualBlock(new TurnCost(res), nullptr, u.data());
+  for (size_t j = 0; j < res.n; ++j) {
+    problem.SetParameterLowerBound(u.data(), static_cast<int>(j), 0.0);
+    problem.SetParameterUpperBound(u.data(), static_cast<int>(j), 1.0);
+  }
+  ceres::Solver::Options o;
+  o.minimizer_type = ceres::TRUST_REGION;
+  o.trust_region_strategy_type = ceres::LEVENBERG_MARQUARDT;
+  o.linear_solver_type = ceres::DENSE_QR;
+  o.max_num_iterations = s.max_iterations;
+  // Relative cost change 1e-9: far below what a turn's noise moves chi2 by.
+  o.function_tolerance = 1e-9;
+  o.parameter_tolerance = 1e-9;
+  o.gradient_tolerance = 1e-12;
+  o.logging_type = ceres::SILENT;
+  o.minimizer_progress_to_stdout = false;
+  o.num_threads = 1;  // the cost function runs its own evaluations in parallel
+  ProgressCallback cb(s, pass);
+  o.callbacks.push_back(&cb);
+  ceres::Solver::Summary summary;
+  ceres::Solve(o, &problem, &summary);
+  return summary;
+}
+
+std::string fmt(double v, int digits = 3) {
+  char b[48];
+  std::snprintf(b, sizeof b, "%.*g", digits, v);
+  return b;
+}
+
+}  // namespace
+
+LocalSearchResult local_search(const TurnPatternProblem& p, const std::vector<double>& x0,
+                               const LocalSearchSettings& s) {
+  quiet_ceres_logging();
+  const auto wall0 = std::chrono::steady_clock::now();
+  const std::clock_t cpu0 = std::clock();
+  const size_t n = p.n_variables();
+  if (x0.size() != n) throw Error(ExitCode::software, "local_search: a start of the wrong size");
+  for (size_t j = 0; j < n; ++j)
+    if (!(x0[j] >= p.lower()[j] && x0[j] <= p.upper()[j]))
+      throw usage_error("the start's " + p.variables()[j].name + " = " + fmt(x0[j], 10) + " lies outside its bounds [" +
+                        fmt(p.lower()[j], 10) + ", " + fmt(p.upper()[j], 10) + "]");
+
+  LocalSearchResult out;
+  const TurnTable& meas = p.measured();
+  const size_t nmeas = meas.points.size();
+
+  // Peak-position uncertainty: the problem's, else the wire step / sqrt(12) for the first pass.
+  std::vector<double> sigma = p.sigma_mm();
+  const bool estimate = sigma.empty();
+  if (estimate) {
+    sigma.assign(nmeas, 0);
+    for (size_t q = 0; q < meas.probes.size(); ++q) {
+      double step = 0;
+      for (const auto& pr : p.machine().probes)
+        if (pr.name == meas.probes[q]) step = pr.step_mm;
+      if (!(step > 0)) step = 0.5;
+      auto [b, e] = meas.probe_range(static_cast<int>(q));
+      for (size_t i = b; i < e; ++i) sigma[i] = step / std::sqrt(12.0);
+    }
+  }
+
+  const TurnPatternResult start = p.simulate(x0);
+  if (!start.ok) throw Error(ExitCode::data, p.file() + ": the start cannot be simulated: " + start.reason);
+  out.before = summarize(p, start, sigma);
+  if (out.before.matched == 0)
+    throw Error(ExitCode::data, p.file() + ": the start reaches no measured turn (" + start.end.status + ")");
+
+  Residuals res(p);
+  res.n = n;
+  res.nmeas = nmeas;
+  res.threads = resolve_thread_count(s.threads);
+  res.h = s.fd_step;
+  res.central = s.central;
+  res.weak = s.weak_prior_range;
+  res.miss_mm = s.miss_penalty_mm > 0 ? s.miss_penalty_mm : std::max(10.0, 2 * out.before.linf_mm);
+  std::vector<double> u(n);
+  for (size_t j = 0; j < n; ++j) {
+    res.lo.push_back(p.lower()[j]);
+    res.range.push_back(p.upper()[j] - p.lower()[j]);
+    u[j] = (x0[j] - res.lo[j]) / res.range[j];
+    const TurnVariable& v = p.variables()[j];
+    res.prior_x0.push_back(v.start);
+    res.prior_sigma_x.push_back(v.sigma);
+    res.prior_kind.push_back(v.sigma > 0 ? 1 : (s.weak_prior_range > 0 ? 2 : 0));
+  }
+  res.weak_u0 = u;
+  res.nres = nmeas;
+  for (int k : res.prior_kind) res.nres += k ? 1 : 0;
+  auto set_sigma = [&](const std::vector<double>& sg) {
+    res.inv_sigma.resize(nmeas);
+    for (size_t i = 0; i < nmeas; ++i) res.inv_sigma[i] = 1 / sg[i];
+  };
+  set_sigma(sigma);
+
+  ceres::Solver::Summary sum = lm_pass(res, u, s, 1);
+  out.iterations = static_cast<int>(sum.iterations.size());
+  out.sigma_probes = meas.probes;
+  if (estimate) {
+    // chi2 per degree of freedom 1 per probe: sigma_p^2 = sum dr^2 / (N_p - n N_p / N).
+    const TurnPatternResult r1 = p.simulate(res.x_of(u.data()));
+    size_t nmatched = 0;
+    for (size_t i = 0; i < nmeas; ++i) nmatched += r1.ok && r1.matched[i];
+    for (size_t q = 0; q < meas.probes.size(); ++q) {
+      auto [b, e] = meas.probe_range(static_cast<int>(q));
+      double ss = 0;
+      size_t np = 0;
+      for (size_t i = b; i < e; ++i)
+        if (r1.ok && r1.matched[i]) {
+          ss += r1.delta_mm[i] * r1.delta_mm[i];
+          ++np;
+        }
+      const double dof = static_cast<double>(np) - static_cast<double>(n) * np / std::max<size_t>(nmatched, 1);
+      const double sp = np > 0 && dof > 0.5 ? std::sqrt(ss / dof) : sigma[b];
+      out.sigma_mm.push_back(sp);
+      for (size_t i = b; i < e; ++i) sigma[i] = sp;
+    }
+    out.sigma_source = "estimated per probe from the converged residuals (chi2 per degree of freedom 1); "
+                       "first pass weighted by each probe's wire step / sqrt(12)";
+    set_sigma(sigma);
+    sum = lm_pass(res, u, s, 2);
+    out.iterations += static_cast<int>(sum.iterations.size());
+  } else {
+    for (size_t q = 0; q < meas.probes.size(); ++q) out.sigma_mm.push_back(sigma[meas.probe_range(static_cast<int>(q)).first]);
+    out.sigma_source = "problem file (sigma_mm)";
+  }
+  out.termination = ceres::TerminationTypeToString(sum.termination_type);
+  out.x = res.x_of(u.data());
+  const TurnPatternResult fin = p.simulate(out.x);
+  out.after = summarize(p, fin, sigma);
+  out.before = summarize(p, start, sigma);  // chi2 with the final sigma, comparable with after's
+  const double dof = static_cast<double>(out.after.matched) - static_cast<double>(n);
+  out.chi2_dof = dof > 0 ? out.after.chi2 / dof : std::nan("");
+
+  // Statistics at the result: the Jacobian there (reused when Ceres' last one was there).
+  Eigen::MatrixXd J;
+  {
+    std::lock_guard<std::mutex> lock(res.mu);
+    if (res.jac_u == u) J = res.jac;
+  }
+  if (J.size() == 0) {
+    std::vector<double> r0(res.nres);
+    res.fill_with_jacobian(u.data(), r0.data(), nullptr);
+    std::lock_guard<std::mutex> lock(res.mu);
+    J = res.jac;
+  }
+  const Eigen::MatrixXd Jd = J.topRows(static_cast<Eigen::Index>(nmeas));
+  // Posterior (priors included): pseudo-inverse of J^T J.
+  Eigen::JacobiSVD<Eigen::MatrixXd> svd_full(J, Eigen::ComputeThinV);
+  const Eigen::VectorXd sf = svd_full.singularValues();
+  Eigen::MatrixXd cov = Eigen::MatrixXd::Zero(n, n);
+  for (Eigen::Index k = 0; k < sf.size(); ++k)
+    if (sf(k) > sf(0) * 1e-12) cov += svd_full.matrixV().col(k) * svd_full.matrixV().col(k).transpose() / (sf(k) * sf(k));
+  // The data alone with only the weak prior (one range): what the turns determine.
+  const double w = s.weak_prior_range > 0 ? s.weak_prior_range : 1.0;
+  const Eigen::MatrixXd cov_data =
+      (Jd.transpose() * Jd + Eigen::MatrixXd::Identity(n, n) / (w * w)).inverse();
+  out.correlation = Eigen::MatrixXd::Zero(n, n);
+  for (size_t j = 0; j < n; ++j) {
+    FittedVariable v;
+    const TurnVariable& tv = p.variables()[j];
+    v.name = tv.name;
+    v.unit = tv.unit;
+    v.start = x0[j];
+    v.value = out.x[j];
+    v.sigma = std::sqrt(std::max(0.0, cov(j, j))) * res.range[j];
+    v.lower = p.lower()[j];
+    v.upper = p.upper()[j];
+    v.determined = std::sqrt(std::max(0.0, cov_data(j, j))) < 0.1;
+    v.at_bound = u[j] <= 1e-9 || u[j] >= 1 - 1e-9;
+    out.variables.push_back(v);
+    for (size_t k = 0; k < n; ++k) {
+      const double d = std::sqrt(std::max(0.0, cov(j, j) * cov(k, k)));
+      out.correlation(j, k) = d > 0 ? cov(j, k) / d : (j == k ? 1 : 0);
+    }
+  }
+  Eigen::JacobiSVD<Eigen::MatrixXd> svd(Jd, Eigen::ComputeThinV);
+  const Eigen::VectorXd sv = svd.singularValues();
+  for (Eigen::Index k = 0; k < sv.size(); ++k) out.singular_values.push_back(sv(k));
+
+  // In words: each direction the turns fix to worse than a tenth of a bound range, and every
+  // strongly correlated pair.
+  for (Eigen::Index k = 0; k < sv.size(); ++k) {
+    const double width = sv(k) > 0 ? 1 / sv(k) : std::numeric_limits<double>::infinity();
+    if (width < 0.1) continue;
+    const Eigen::VectorXd v = svd.matrixV().col(k);
+    std::vector<size_t> idx;
+    for (size_t j = 0; j < n; ++j)
+      if (std::fabs(v(static_cast<Eigen::Index>(j))) >= 0.2) idx.push_back(j);
+    std::sort(idx.begin(), idx.end(), [&](size_t a, size_t b) {
+      return std::fabs(v(static_cast<Eigen::Index>(a))) > std::fabs(v(static_cast<Eigen::Index>(b)));
+    });
+    std::string names, combo;
+    for (size_t j : idx) {
+      names += (names.empty() ? "" : ", ") + p.variables()[j].name;
+      const double c = v(static_cast<Eigen::Index>(j)) * (v(static_cast<Eigen::Index>(idx[0])) < 0 ? -1 : 1);
+      combo += (c < 0 ? " - " : (combo.empty() ? "" : " + ")) + fmt(std::fabs(c), 2) + " " + p.variables()[j].name;
+    }
+    const std::string fixed = std::isfinite(width) ? "the turns fix it to +-" + fmt(width, 2) + " of a bound range"
+                                                   : "the turns do not depend on it";
+    if (idx.size() == 1)
+      out.identifiability.push_back(names + ": not determined by the data (" + fixed + ")");
+    else
+      out.identifiability.push_back(names + ": only combinations are determined; " + combo +
+                                    " (each in units of its bound range) is not (" + fixed + ")");
+  }
+  for (size_t j = 0; j < n; ++j)
+    for (size_t k = j + 1; k < n; ++k)
+      if (std::fabs(out.correlation(j, k)) >= 0.95)
+        out.identifiability.push_back(p.variables()[j].name + " and " + p.variables()[k].name + ": " +
+                                      fmt(out.correlation(j, k), 3) + " correlated");
+
+  out.evaluations = res.evaluations + 2;  // the start and the result, simulated above
+  out.failed_evaluations = res.failed;
+  out.wall_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - wall0).count();
+  out.cpu_s = static_cast<double>(std::clock() - cpu0) / CLOCKS_PER_SEC;
+  return out;
+}
+
+}  // namespace turnfit

@@ -1,0 +1,88 @@
+// Local search on a turn-pattern problem: bounded Levenberg-Marquardt (Ceres) on every turn's
+// residual with a finite-difference Jacobian evaluated in parallel, uncertainties, correlations
+// and what the data do not determine.
+#pragma once
+
+#include <Eigen/Dense>
+#include <functional>
+#include <string>
+#include <vector>
+
+#include "turnfit/optimize/turn_problem.hpp"
+
+namespace turnfit {
+
+/// How the local search runs.
+struct LocalSearchSettings {
+  unsigned threads = 0;        ///< designs evaluated at once (0: every hardware thread)
+  int max_iterations = 60;     ///< Levenberg-Marquardt iterations per pass
+  /// Finite-difference step, as a fraction of each variable's bound range. Tracking is
+  /// deterministic and smooth in its inputs to ~1e-12 relative, so small steps are safe.
+  double fd_step = 1e-6;
+  bool central = false;        ///< central differences (twice the evaluations per Jacobian)
+  /// The weak prior toward the start for variables without a sigma: one residual
+  /// (u - u_start) / weak_prior_range, u the variable scaled to its bounds. Directions the
+  /// data do not determine then stay put instead of drifting to a bound; a determined
+  /// direction's residuals outweigh it. 0: none.
+  double weak_prior_range = 1.0;
+  /// The residual [mm] given to a measured turn the design does not reach (or reaches under
+  /// another number): finite, so a failed design steers the fit away instead of stopping it.
+  /// 0: 10 mm or twice the start's worst turn, whichever is larger.
+  double miss_penalty_mm = 0;
+  /// Called after each Levenberg-Marquardt iteration with (pass, iteration, cost); may be empty.
+  std::function<void(int, int, double)> progress;
+};
+
+/// The turn residuals of one design, summarized.
+struct FitSummary {
+  std::vector<double> objectives;  ///< the problem's objectives [mm]
+  double linf_mm = 0, mae_mm = 0, rms_mm = 0;
+  double chi2 = 0;                 ///< sum of (delta / sigma)^2 over matched turns
+  size_t matched = 0;              ///< turns with a simulated partner
+  size_t violation = 0;            ///< missing plus extra turns
+  bool ok = false;                 ///< the design could be simulated
+  std::string reason;
+};
+
+/// One variable after the fit.
+struct FittedVariable {
+  std::string name, unit;
+  double start = 0, value = 0;
+  double sigma = 0;       ///< 1-sigma uncertainty from the fit (priors included)
+  double lower = 0, upper = 0;
+  bool determined = false;  ///< the data fix it to better than a tenth of its bound range
+  bool at_bound = false;    ///< the fit ended on a bound
+};
+
+/// What the local search found.
+struct LocalSearchResult {
+  std::vector<double> x;              ///< the least-squares result
+  FitSummary before, after;
+  std::vector<FittedVariable> variables;
+  Eigen::MatrixXd correlation;        ///< of the variables (priors included)
+  std::vector<double> singular_values;  ///< of the data's Jacobian, variables scaled to their bounds
+  std::vector<std::string> identifiability;  ///< what the data do not determine, in words
+  std::vector<std::string> sigma_probes;     ///< probes, in measured order
+  std::vector<double> sigma_mm;              ///< peak-position uncertainty used per probe
+  std::string sigma_source;                  ///< "problem file" or how it was estimated
+  double chi2_dof = 0;                ///< after the fit (measured turns, less the variables)
+  size_t evaluations = 0;             ///< designs simulated
+  int iterations = 0;                 ///< Levenberg-Marquardt iterations, all passes
+  std::string termination;            ///< Ceres' word for how the last pass ended
+  size_t failed_evaluations = 0;      ///< designs that could not be simulated (penalized)
+  double wall_s = 0, cpu_s = 0;       ///< time taken (CPU: every thread of the process)
+};
+
+/// Summarizes one design against the measurement (sigma per measured point for chi2).
+FitSummary summarize(const TurnPatternProblem& p, const TurnPatternResult& r, const std::vector<double>& sigma_mm);
+
+/// Fits the problem's variables from x0 by bounded Levenberg-Marquardt on the residuals
+/// (model - measured) / sigma of every measured turn, with the problem's priors and the weak
+/// prior. Without the problem's sigma_mm, a first pass weighs each probe by its wire step /
+/// sqrt(12) (the readout's resolution); the uncertainty is then estimated per probe from the
+/// converged residuals (chi2 per degree of freedom 1) and a second pass fits with it.
+/// EX_DATAERR if x0 cannot be simulated; EX_USAGE if x0 lies outside the bounds.
+LocalSearchResult local_search(const TurnPatternProblem& p, const std::vector<double>& x0,
+                               const LocalSearchSettings& s);
+
+}  // namespace turnfit

@@ -1,0 +1,315 @@
+// The turn-pattern problem: machine + measured turns + design variables, evaluated in process.
+#include "turnfit/optimize/turn_problem.hpp"
+
+#include <cmath>
+#include <filesystem>
+#include <set>
+
+#include "turnfit/io/csv.hpp"
+#include "turnfit/io/error.hpp"
+
+namespace turnfit {
+
+std::vector<Objective> paper_objectives() {
+  return parse_objectives_spec(
+      "RRI2:1-16:linf,RRL:9-31:linf,RRL:32-61:linf,RRL:62-105:linf,RRL:106-148:linf,RRL:149-182:linf");
+}
+
+TurnTable read_measured_turns(const std::vector<std::string>& paths) {
+  TurnTable out;
+  out.format = "peaks";
+  std::vector<std::string> from;  // file of each probe
+  for (const auto& path : paths) {
+    const TurnTable t = turn_table_from_csv(CsvTable::read(path));
+    const std::string name = path == "-" ? "<stdin>" : path;
+    std::vector<int> index(t.probes.size());
+    for (size_t p = 0; p < t.probes.size(); ++p) {
+      if (out.probe_index(t.probes[p]) >= 0)
+        throw data_error(name, 0, "probe " + t.probes[p] + " is also in " + from[static_cast<size_t>(out.probe_index(t.probes[p]))] +
+                                      ": give each probe's peaks once");
+      index[p] = static_cast<int>(out.probes.size());
+      out.probes.push_back(t.probes[p]);
+      from.push_back(name);
+    }
+    for (TurnPoint pt : t.points) {
+      pt.probe = index[static_cast<size_t>(pt.probe)];
+      out.points.push_back(std::move(pt));
+    }
+    out.source += (out.source.empty() ? "" : ", ") + name;
+  }
+  finish_turn_table(out);
+  return out;
+}
+
+namespace {
+
+/// Errors that name the problem file and the key.
+struct Keys {
+  std::string file;
+  [[noreturn]] void fail(const std::string& key, const std::string& what) const {
+    throw data_error(file, 0, key + ": " + what);
+  }
+  double number(const nlohmann::json& v, const std::string& key) const {
+    if (!v.is_number() || !std::isfinite(v.get<double>())) fail(key, "expected a finite number");
+    return v.get<double>();
+  }
+  std::string text(const nlohmann::json& v, const std::string& key) const {
+    if (!v.is_string() || v.get<std::string>().empty()) fail(key, "expected a non-empty string");
+    return v.get<std::string>();
+  }
+};
+
+std::string resolve(const std::string& dir, const std::string& path) {
+  if (path == "-" || path.empty() || path.front() == '/' || dir.empty()) return path;
+  return (std::filesystem::path(dir) / path).lexically_normal().string();
+}
+
+std::string known_variables(const Machine& m) {
+  std::string s;
+  size_t k = 0;
+  for (const auto& [name, dv] : m.dvars) {
+    if (k++ == 12) return s + ", ... (" + std::to_string(m.dvars.size()) + " in all)";
+    s += (s.empty() ? "" : ", ") + name;
+  }
+  return s.empty() ? "none: the machine has no design variables" : s;
+}
+
+}  // namespace
+
+TurnPatternProblem::TurnPatternProblem(std::string name, std::vector<double> lower, std::vector<double> upper,
+                                       std::vector<std::string> names, size_t n_objectives, size_t n_constraints)
+    : Problem(std::move(name), std::move(lower), std::move(upper), n_objectives, n_constraints, names),
+      names_(std::move(names)) {}
+
+std::unique_ptr<TurnPatternProblem> TurnPatternProblem::from_json(const nlohmann::json& j, const std::string& file,
+                                                                  const std::string& dir) {
+  Keys k{file};
+  static const std::set<std::string> known = {"format",     "name",        "description", "machine",  "peaks",
+                                              "variables",  "objectives",  "constraints", "sigma_mm", "reference"};
+  for (auto it = j.begin(); it != j.end(); ++it)
+    if (!known.count(it.key()))
+      k.fail(it.key(), "unknown key in a turn-pattern problem (known: format, name, description, machine, peaks, "
+                       "variables, objectives, constraints, sigma_mm, reference)");
+
+  // The machine, and every file its model reads.
+  if (!j.contains("machine")) k.fail("machine", "missing");
+  const std::string machine_path = resolve(dir, k.text(j["machine"], "machine"));
+  Machine m = load_machine(machine_path);
+  if (!m.injection) k.fail("machine", machine_path + " has no injection block to track from");
+  if (m.probes.empty()) k.fail("machine", machine_path + " has no probes: it records no turns");
+  TrackSettings settings = machine_track_settings(m);
+  if (!(settings.turns > 0))
+    k.fail("machine", machine_path + ": /tracking/turns: the problem tracks the machine's turn count; give one");
+
+  // Measured turns.
+  if (!j.contains("peaks")) k.fail("peaks", "missing");
+  std::vector<std::string> peak_files;
+  if (j["peaks"].is_array()) {
+    if (j["peaks"].empty()) k.fail("peaks", "an empty list");
+    for (size_t i = 0; i < j["peaks"].size(); ++i)
+      peak_files.push_back(resolve(dir, k.text(j["peaks"][i], "peaks/" + std::to_string(i))));
+  } else {
+    peak_files.push_back(resolve(dir, k.text(j["peaks"], "peaks")));
+  }
+  TurnTable measured = read_measured_turns(peak_files);
+  if (measured.points.empty()) k.fail("peaks", "no measured turn in " + measured.source);
+  for (const auto& probe : measured.probes) {
+    bool have = false;
+    for (const auto& p : m.probes) have = have || p.name == probe;
+    if (!have) k.fail("peaks", "probe " + probe + " (" + measured.source + ") is not a probe of " + machine_path);
+  }
+
+  // Objectives and constraints.
+  std::vector<Objective> objectives =
+      j.contains("objectives") ? parse_objectives_json(j["objectives"], file + ": objectives") : paper_objectives();
+  if (objectives.empty()) k.fail("objectives", "at least one objective");
+  ObjectivePlan plan;
+  try {
+    plan = plan_objectives(objectives, measured);
+  } catch (const Error& e) {
+    k.fail("objectives", std::string(e.what()) + " (measured: " + measured.source + ")");
+  }
+  bool turn_count = true;
+  if (j.contains("constraints")) {
+    const auto& c = j["constraints"];
+    if (!c.is_array()) k.fail("constraints", "expected a list (known: \"turn-count\")");
+    turn_count = false;
+    for (size_t i = 0; i < c.size(); ++i) {
+      const std::string name = k.text(c[i], "constraints/" + std::to_string(i));
+      if (name != "turn-count")
+        k.fail("constraints/" + std::to_string(i), "unknown constraint '" + name + "' (known: turn-count)");
+      turn_count = true;
+    }
+  }
+
+  // Variables: "paper", names, or {name, lower, upper, sigma}.
+  if (!j.contains("variables")) k.fail("variables", "missing (\"paper\", a list of names, or of {name, lower, upper, sigma})");
+  const auto& jv = j["variables"];
+  std::vector<TurnVariable> vars;
+  std::set<std::string> seen;
+  auto add = [&](const std::string& name, const std::string& key) -> TurnVariable& {
+    auto it = m.dvars.find(name);
+    if (it == m.dvars.end())
+      k.fail(key, "'" + name + "' is not a design variable of " + machine_path + " (known: " + known_variables(m) + ")");
+    if (!seen.insert(name).second) k.fail(key, "'" + name + "' appears twice");
+    TurnVariable v;
+    v.name = name;
+    v.unit = it->second.unit;
+    v.lower = it->second.lower;
+    v.upper = it->second.upper;
+    v.start = dvar_value(m, name);
+    vars.push_back(v);
+    return vars.back();
+  };
+  if (jv.is_string()) {
+    if (jv.get<std::string>() != "paper") k.fail("variables", "expected \"paper\", a list of names, or of {name, lower, upper, sigma}");
+    for (const auto& [name, dv] : builtin_dvars(m)) add(name, "variables");
+    if (vars.empty()) k.fail("variables", "\"paper\": " + machine_path + " has none of the paper's design variables");
+  } else if (jv.is_array() && !jv.empty()) {
+    for (size_t i = 0; i < jv.size(); ++i) {
+      const std::string key = "variables/" + std::to_string(i);
+      const auto& e = jv[i];
+      if (e.is_string()) {
+        add(k.text(e, key), key);
+        continue;
+      }
+      if (!e.is_object()) k.fail(key, "expected a name or {name, lower, upper, sigma}");
+      for (auto it = e.begin(); it != e.end(); ++it)
+        if (it.key() != "name" && it.key() != "lower" && it.key() != "upper" && it.key() != "sigma")
+          k.fail(key + "/" + it.key(), "unknown key (known: name, lower, upper, sigma)");
+      if (!e.contains("name")) k.fail(key + "/name", "missing");
+      TurnVariable& v = add(k.text(e["name"], key + "/name"), key + "/name");
+      if (e.contains("lower")) v.lower = k.number(e["lower"], key + "/lower");
+      if (e.contains("upper")) v.upper = k.number(e["upper"], key + "/upper");
+      if (!(v.lower < v.upper)) k.fail(key, "lower must be below upper");
+      if (e.contains("sigma")) {
+        v.sigma = k.number(e["sigma"], key + "/sigma");
+        if (!(v.sigma > 0)) k.fail(key + "/sigma", "must be positive");
+      }
+      if (v.start < v.lower || v.start > v.upper)
+        k.fail(key, v.name + "'s value in the machine, " + std::to_string(v.start) + ", lies outside [lower, upper]");
+    }
+  } else {
+    k.fail("variables", "expected \"paper\", a list of names, or of {name, lower, upper, sigma}");
+  }
+  for (const auto& v : vars) {  // the problem's bounds are the ones set_dvars checks
+    m.dvars[v.name].lower = v.lower;
+    m.dvars[v.name].upper = v.upper;
+  }
+
+  // Peak-position uncertainty: a number, or one per probe.
+  std::vector<double> sigma;
+  if (j.contains("sigma_mm")) {
+    const auto& s = j["sigma_mm"];
+    sigma.assign(measured.points.size(), 0);
+    if (s.is_number()) {
+      const double v = k.number(s, "sigma_mm");
+      if (!(v > 0)) k.fail("sigma_mm", "must be positive");
+      sigma.assign(measured.points.size(), v);
+    } else if (s.is_object()) {
+      for (size_t p = 0; p < measured.probes.size(); ++p) {
+        const std::string& probe = measured.probes[p];
+        if (!s.contains(probe)) k.fail("sigma_mm/" + probe, "missing: give every measured probe's uncertainty");
+        const double v = k.number(s[probe], "sigma_mm/" + probe);
+        if (!(v > 0)) k.fail("sigma_mm/" + probe, "must be positive");
+        auto [b, e] = measured.probe_range(static_cast<int>(p));
+        for (size_t i = b; i < e; ++i) sigma[i] = v;
+      }
+      for (auto it = s.begin(); it != s.end(); ++it)
+        if (measured.probe_index(it.key()) < 0) k.fail("sigma_mm/" + it.key(), "not a measured probe");
+    } else {
+      k.fail("sigma_mm", "expected a number or {probe: number}");
+    }
+  }
+
+  std::vector<double> lo, hi;
+  std::vector<std::string> names;
+  for (const auto& v : vars) {
+    lo.push_back(v.lower);
+    hi.push_back(v.upper);
+    names.push_back(v.name);
+  }
+  const std::string name = j.contains("name") ? k.text(j["name"], "name") : std::filesystem::path(file).stem().string();
+  std::unique_ptr<TurnPatternProblem> p(
+      new TurnPatternProblem(name, lo, hi, names, objectives.size(), turn_count ? 1 : 0));
+  p->file_ = file;
+  p->files_ = read_model_files(m);
+  p->machine_ = std::move(m);
+  p->settings_ = settings;
+  p->vars_ = std::move(vars);
+  p->measured_ = std::move(measured);
+  p->objectives_ = std::move(objectives);
+  p->plan_ = std::move(plan);
+  p->turn_count_ = turn_count;
+  p->sigma_mm_ = std::move(sigma);
+  return p;
+}
+
+std::vector<double> TurnPatternProblem::start() const {
+  std::vector<double> x;
+  for (const auto& v : vars_) x.push_back(v.start);
+  return x;
+}
+
+Machine TurnPatternProblem::machine_at(const std::vector<double>& x) const {
+  Machine m = machine_;
+  set_dvars(m, names_, x);
+  return m;
+}
+
+TurnPatternResult TurnPatternProblem::simulate(const std::vector<double>& x) const {
+  TurnPatternResult r;
+  std::vector<TurnRecord> turns;
+  std::vector<std::string> probe_names;
+  try {
+    if (x.size() != vars_.size()) throw Error(ExitCode::software, "a design of the wrong size");
+    const Machine m = machine_at(x);
+    const TrackModel model = make_track_model(m, {}, &files_);
+    for (const auto& p : model.probes) probe_names.push_back(p.name);
+    const ParticleState s0 = injection_state(effective_injection(m), m.particle.mass_MeV);
+    r.end = track_particle(model, s0, settings_, turns);
+  } catch (const Error& e) {
+    r.reason = e.what();
+    return r;
+  }
+  r.simulated.source = "<simulated>";
+  r.simulated.format = "turns";
+  r.simulated.probes = probe_names;
+  r.simulated.points.reserve(turns.size());
+  for (const auto& t : turns) {
+    TurnPoint pt;
+    pt.probe = t.probe;
+    pt.turn = t.turn;
+    pt.r_mm = t.r_mm;
+    r.simulated.points.push_back(pt);
+  }
+  finish_turn_table(r.simulated);
+  r.violation = match_turns(measured_, r.simulated, r.delta_mm, r.matched);
+  r.objectives.resize(plan_.items.size());
+  evaluate_objectives(plan_, r.delta_mm.data(), r.matched.data(), r.objectives.data());
+  r.ok = true;
+  return r;
+}
+
+Evaluation TurnPatternProblem::evaluate(const std::vector<double>& x) const {
+  Evaluation e;
+  const TurnPatternResult r = simulate(x);
+  if (!r.ok) {
+    e.ok = false;
+    e.reason = r.reason;
+    return e;
+  }
+  for (size_t i = 0; i < r.objectives.size(); ++i) {
+    if (std::isnan(r.objectives[i].value)) {
+      e.ok = false;
+      e.reason = "objective " + objective_spec(objectives_[i]) + " matches no simulated turn (" + r.end.status + ")";
+      e.f.clear();
+      return e;
+    }
+    e.f.push_back(r.objectives[i].value);
+  }
+  if (turn_count_) e.g.push_back(static_cast<double>(r.violation));
+  return e;
+}
+
+}  // namespace turnfit

@@ -1,0 +1,109 @@
+// The turn-pattern problem: a machine, measured turns and design variables, evaluated in
+// process (track + compare, no shell, no disk). What nsga, localsearch and diagnose optimize.
+#pragma once
+
+#include <memory>
+#include <nlohmann/json.hpp>
+#include <string>
+#include <vector>
+
+#include "turnfit/machine/machine.hpp"
+#include "turnfit/metrics/metrics.hpp"
+#include "turnfit/optimize/problems.hpp"
+#include "turnfit/track/model.hpp"
+#include "turnfit/track/tracker.hpp"
+
+namespace turnfit {
+
+/// One design variable of a turn-pattern problem.
+struct TurnVariable {
+  std::string name;
+  std::string unit;
+  double lower = 0;  ///< the problem's bounds (the machine's unless the problem file overrides them)
+  double upper = 0;
+  double start = 0;  ///< its value in the machine as loaded
+  /// Prior: the setting is known (control system, survey) within sigma of `start`; 0: none.
+  /// A fit adds the residual (x - start) / sigma, so the variable cannot quietly absorb
+  /// physics the model lacks.
+  double sigma = 0;
+};
+
+/// The paper's six objectives (its Tab. of results): RRI2 turns 1-16 and five RRL ranges, each
+/// the largest |dr|.
+std::vector<Objective> paper_objectives();
+
+/// What one design gives, turn by turn.
+struct TurnPatternResult {
+  bool ok = false;               ///< false: the design could not be simulated (reason says why)
+  std::string reason;
+  /// r_sim - r_meas per measured point (TurnPatternProblem::measured().points order); NaN where
+  /// the simulation has no partner turn.
+  std::vector<double> delta_mm;
+  std::vector<unsigned char> matched;  ///< 1 where delta_mm is a residual
+  size_t violation = 0;          ///< missing plus extra turns (0: the turn counts agree)
+  std::vector<ObjectiveValue> objectives;  ///< one per problem objective
+  TurnTable simulated;           ///< the simulated crossings (probe, turn, r) that were compared
+  TrackEnd end;                  ///< how the track ended
+};
+
+/// A turn-pattern problem (turnfit-problem(5), "TURN-PATTERN PROBLEMS"). Loading reads every
+/// file once (machine, field map, profiles, measured peaks); evaluate() and simulate() read
+/// nothing from disk and are safe to call from several threads at once.
+class TurnPatternProblem : public Problem {
+ public:
+  /// From a parsed problem file `j` (turnfit-problem/1 with a "machine" key). `file` names it in
+  /// messages; relative paths are resolved against `dir`. Errors: EX_DATAERR naming the file
+  /// and key (an unknown variable, a probe an objective needs that the peaks lack, an
+  /// objective that covers no measured turn), EX_NOINPUT for a missing machine or peaks file.
+  static std::unique_ptr<TurnPatternProblem> from_json(const nlohmann::json& j, const std::string& file,
+                                                       const std::string& dir);
+
+  /// Objectives (the problem's, in mm) and the turn-count constraint (missing plus extra
+  /// turns, <= 0 feasible) when the problem has it. A design that cannot be simulated, or an
+  /// objective that matches no turn, is a failed evaluation (ok = false, with the reason).
+  Evaluation evaluate(const std::vector<double>& x) const override;
+
+  /// The design's turns compared with the measurement.
+  TurnPatternResult simulate(const std::vector<double>& x) const;
+
+  /// The machine as loaded (variables at their start values).
+  const Machine& machine() const { return machine_; }
+  /// The machine with the design's values set (EX_USAGE if a value is outside its bounds).
+  Machine machine_at(const std::vector<double>& x) const;
+  /// The variables, in the order of x.
+  const std::vector<TurnVariable>& variables() const { return vars_; }
+  /// Start values (the machine's), in the order of x.
+  std::vector<double> start() const;
+  /// The measured turns (every probe of the peaks files).
+  const TurnTable& measured() const { return measured_; }
+  /// The objectives.
+  const std::vector<Objective>& objectives() const { return objectives_; }
+  /// Whether the turn-count constraint is on.
+  bool turn_count_constraint() const { return turn_count_; }
+  /// Peak-position uncertainty per measured point [mm] from the problem's sigma_mm; empty when
+  /// the file gives none (a fit then estimates it).
+  const std::vector<double>& sigma_mm() const { return sigma_mm_; }
+  /// The problem file, for messages.
+  const std::string& file() const { return file_; }
+
+ private:
+  TurnPatternProblem(std::string name, std::vector<double> lower, std::vector<double> upper,
+                     std::vector<std::string> names, size_t n_objectives, size_t n_constraints);
+  std::string file_;
+  Machine machine_;
+  ModelFiles files_;
+  TrackSettings settings_;
+  std::vector<TurnVariable> vars_;
+  std::vector<std::string> names_;
+  TurnTable measured_;
+  std::vector<Objective> objectives_;
+  ObjectivePlan plan_;
+  bool turn_count_ = true;
+  std::vector<double> sigma_mm_;
+};
+
+/// The measured turns of one or more peaks files (turnfit-peakfind's CSV; "-" is stdin), as one
+/// table: a probe may come from one file only, a repeated (probe, turn) is EX_DATAERR.
+TurnTable read_measured_turns(const std::vector<std::string>& paths);
+
+}  // namespace turnfit

@@ -1,0 +1,266 @@
+// The turn-pattern problem (issue 15): one thread pool for the library, models built from files
+// read once, and the in-process evaluation equal to turnfit-track + turnfit-compare.
+#include <catch2/catch.hpp>
+
+#include <atomic>
+#include <cmath>
+#include <fstream>
+#include <set>
+#include <stdexcept>
+
+#include "../support.hpp"
+#include "turnfit/io/parallel.hpp"
+#include "turnfit/machine/machine.hpp"
+#include "turnfit/optimize/nsga2.hpp"
+#include "turnfit/optimize/problem_file.hpp"
+#include "turnfit/optimize/localsearch.hpp"
+#include "turnfit/optimize/turn_problem.hpp"
+#include "turnfit/track/model.hpp"
+#include "turnfit/track/tracker.hpp"
+
+using namespace turnfit;
+using turnfit::test::TempDir;
+
+namespace {
+
+std::string ring8(const std::string& file) { return std::string(TURNFIT_TEST_DIR) + "/../share/turnfit/ring8/" + file; }
+
+/// The nominal ring8 machine's own turns as a peaks file: the problem's start then matches exactly.
+std::string nominal_peaks(const TempDir& tmp) {
+  const Machine m = load_machine(ring8("machine.json"));
+  const TrackModel model = make_track_model(m);
+  std::vector<TurnRecord> turns;
+  track_particle(model, injection_state(effective_injection(m), m.particle.mass_MeV), machine_track_settings(m),
+                 turns);
+  std::string csv = "probe,turn,r_mm,height,area,width_mm,flag\n";
+  char buf[160];
+  for (const auto& t : turns) {
+    std::snprintf(buf, sizeof buf, "%s,%d,%.17g,1,1,1,ok\n", model.probes[static_cast<size_t>(t.probe)].name.c_str(),
+                  t.turn, t.r_mm);
+    csv += buf;
+  }
+  return tmp.file("peaks.csv", csv);
+}
+
+std::string problem_text(const std::string& peaks, const std::string& variables, const std::string& extra = "") {
+  return "{\"format\": \"turnfit-problem/1\", \"machine\": \"" + ring8("machine.json") + "\", \"peaks\": \"" + peaks +
+         "\", \"variables\": " + variables + extra + "}";
+}
+
+std::unique_ptr<TurnPatternProblem> load_turn_problem(const std::string& path) {
+  LoadedProblem lp = load_problem(path, "", -1);
+  auto* tp = dynamic_cast<TurnPatternProblem*>(lp.problem.get());
+  REQUIRE(tp != nullptr);
+  lp.problem.release();
+  return std::unique_ptr<TurnPatternProblem>(tp);
+}
+
+}  // namespace
+
+TEST_CASE("parallel_for: every index once on any thread count, the first exception rethrown", "[parallel]") {
+  for (unsigned threads : {1u, 2u, 3u, 8u}) {
+    std::vector<std::atomic<int>> hits(1000);
+    parallel_for(hits.size(), threads, [&](size_t i, unsigned w) {
+      CHECK(w < threads);
+      hits[i]++;
+    });
+    for (auto& h : hits) CHECK(h.load() == 1);
+  }
+  parallel_for(0, 4, [](size_t, unsigned) { FAIL("no index in an empty range"); });
+  std::atomic<int> after{0};
+  CHECK_THROWS_WITH(parallel_for(100, 3,
+                                 [&](size_t i, unsigned) {
+                                   if (i == 5) throw std::runtime_error("item 5");
+                                   ++after;
+                                 }),
+                    "item 5");
+  CHECK(after.load() < 100);  // handing out stopped (exactly how many ran depends on timing)
+  CHECK_THROWS_WITH(run_workers(2, [](unsigned w) {
+                      if (w == 1) throw std::runtime_error("worker 1");
+                    }),
+                    "worker 1");
+  CHECK(resolve_thread_count(3) == 3);
+  CHECK(resolve_thread_count(0) >= 1);
+}
+
+TEST_CASE("model files read once build the same model: ring8's turns bit for bit", "[turn-problem]") {
+  Machine m = load_machine(ring8("machine.json"));
+  const ModelFiles files = read_model_files(m);
+  REQUIRE(files.map);
+  CHECK(files.profiles.size() == 2);  // main-cavity.dat and flattop-cavity.dat (each read once)
+  const TrackSettings st = machine_track_settings(m);
+  const ParticleState s0 = injection_state(effective_injection(m), m.particle.mass_MeV);
+  std::vector<TurnRecord> a, b;
+  track_particle(make_track_model(m), s0, st, a);
+  track_particle(make_track_model(m, {}, &files), s0, st, b);
+  REQUIRE(a.size() == b.size());
+  REQUIRE(a.size() > 180);
+  for (size_t i = 0; i < a.size(); ++i) {
+    CHECK(a[i].r_mm == b[i].r_mm);  // the same inputs and code path: bit-identical
+    CHECK(a[i].t_ns == b[i].t_ns);
+  }
+  // A main field other than the one read (another scale) is read again, not taken from `files`.
+  m.field.scale = 1.001;
+  const TrackModel scaled = make_track_model(m, {}, &files);
+  FieldSample fa, fb;
+  REQUIRE(scaled.map.sample(3.0, 0.1, fa));
+  REQUIRE(files.map->sample(3.0, 0.1, fb));
+  CHECK(fa.bz_T == Approx(1.001 * fb.bz_T).epsilon(1e-12));  // scaling is a product: exact to rounding
+}
+
+TEST_CASE("turn-pattern problem: the machine's own turns give zero, a set variable equals the same machine tracked",
+          "[turn-problem]") {
+  TempDir tmp;
+  const std::string peaks = nominal_peaks(tmp);
+  const std::string file =
+      tmp.file("p.json", problem_text(peaks, "[\"rinit\", {\"name\": \"vmaincav2\", \"sigma\": 0.002}, \"tc05mb\"]",
+                                      ", \"objectives\": [\"RRI2:1-16:linf\", \"RRL:l2\"]"));
+  auto p = load_turn_problem(file);
+  REQUIRE(p->n_variables() == 3);
+  CHECK(p->n_objectives() == 2);
+  CHECK(p->n_constraints() == 1);
+  CHECK(p->variables()[1].sigma == 0.002);
+  CHECK(p->sigma_mm().empty());  // none given: a fit estimates it
+  const std::vector<double> x0 = p->start();
+  Evaluation e0 = p->evaluate(x0);
+  REQUIRE(e0.ok);
+  // The start is the machine that made the peaks: every residual vanishes (the peaks carry 17 digits).
+  CHECK(e0.f[0] == 0);
+  CHECK(e0.f[1] == 0);
+  CHECK(e0.g[0] == 0);
+
+  // rinit + 0.8 mm: the same as setting it on the machine and tracking it (set_dvar, one at a time).
+  std::vector<double> x = x0;
+  x[0] += 0.8;
+  const TurnPatternResult r = p->simulate(x);
+  REQUIRE(r.ok);
+  Machine m = load_machine(ring8("machine.json"));
+  set_dvar(m, "rinit", x[0]);
+  std::vector<TurnRecord> turns;
+  track_particle(make_track_model(m), injection_state(effective_injection(m), m.particle.mass_MeV),
+                 machine_track_settings(m), turns);
+  REQUIRE(r.simulated.points.size() == turns.size());
+  double worst = 0;
+  for (const auto& t : turns) {
+    const int q = r.simulated.probe_index(m.probes[static_cast<size_t>(t.probe)].name);
+    REQUIRE(q >= 0);
+    auto [b, end] = r.simulated.probe_range(q);
+    bool found = false;
+    for (size_t i = b; i < end; ++i)
+      if (r.simulated.points[i].turn == t.turn) {
+        CHECK(r.simulated.points[i].r_mm == t.r_mm);  // same machine, same code: bit-identical
+        found = true;
+      }
+    CHECK(found);
+  }
+  for (size_t i = 0; i < r.delta_mm.size(); ++i)
+    if (r.matched[i]) worst = std::max(worst, std::fabs(r.delta_mm[i]));
+  CHECK(worst > 0.1);  // an injection 0.8 mm out starts a betatron oscillation the nominal lacks
+  const Evaluation e = p->evaluate(x);
+  REQUIRE(e.ok);
+  CHECK(e.f[0] == Approx(r.objectives[0].value).epsilon(0));
+}
+
+TEST_CASE("turn-pattern problem: \"paper\" takes ring8's 48 variables, bounds from the file", "[turn-problem]") {
+  TempDir tmp;
+  const std::string peaks = nominal_peaks(tmp);
+  auto p = load_turn_problem(tmp.file("p.json", problem_text(peaks, "\"paper\"")));
+  CHECK(p->n_variables() == 48);
+  CHECK(p->n_objectives() == 6);  // the paper's six by default
+  auto q = load_turn_problem(
+      tmp.file("q.json", problem_text(peaks, "[{\"name\": \"rinit\", \"lower\": 2040, \"upper\": 2050}]")));
+  CHECK(q->lower()[0] == 2040);
+  CHECK(q->upper()[0] == 2050);
+  std::vector<double> x = {2049.5};  // inside the file's bounds, outside the machine's own (2044.08 +- 5 mm)
+  CHECK(q->evaluate(x).ok);
+  x = {2051};
+  const Evaluation bad = q->evaluate(x);
+  CHECK_FALSE(bad.ok);
+  CHECK(bad.reason.find("outside its bounds") != std::string::npos);
+}
+
+TEST_CASE("turn-pattern problem: bad files are named with their key", "[turn-problem]") {
+  TempDir tmp;
+  const std::string peaks = nominal_peaks(tmp);
+  auto code_and_message = [&](const std::string& text, std::string* msg) {
+    const std::string f = tmp.file("bad.json", text);
+    return test::error_code([&] { load_problem(f, "", -1); }, msg);
+  };
+  std::string msg;
+  CHECK(code_and_message(problem_text(peaks, "[\"rinit\", \"nosuchvar\"]"), &msg) == 65);
+  CHECK(msg.find("variables/1") != std::string::npos);
+  CHECK(msg.find("nosuchvar") != std::string::npos);
+  CHECK(code_and_message(problem_text(peaks, "[\"rinit\"]", ", \"objectives\": [\"RRX:1-5:linf\"]"), &msg) == 65);
+  CHECK(msg.find("objectives") != std::string::npos);
+  CHECK(msg.find("RRX") != std::string::npos);
+  CHECK(code_and_message(problem_text(peaks, "[\"rinit\"]", ", \"objectives\": [\"RRL:300-400:linf\"]"), &msg) == 65);
+  CHECK(msg.find("objectives") != std::string::npos);
+  CHECK(code_and_message(problem_text(peaks, "[{\"name\": \"rinit\", \"lower\": 2050, \"upper\": 2060}]"), &msg) == 65);
+  CHECK(msg.find("outside") != std::string::npos);
+  CHECK(code_and_message(problem_text(peaks, "[\"rinit\"]", ", \"sigma_mm\": {\"RRL\": 0.1}"), &msg) == 65);
+  CHECK(msg.find("sigma_mm/RRI2") != std::string::npos);
+  CHECK(code_and_message(problem_text(tmp.path + "/none.csv", "[\"rinit\"]"), &msg) == 66);
+  CHECK(code_and_message(problem_text(peaks, "[\"rinit\"]", ", \"constraints\": [\"energy\"]"), &msg) == 65);
+  CHECK(msg.find("constraints/0") != std::string::npos);
+}
+
+TEST_CASE("turn-pattern problem under NSGA-II: the same front on 1 and 2 threads", "[turn-problem]") {
+  TempDir tmp;
+  const std::string peaks = nominal_peaks(tmp);
+  auto p = load_turn_problem(
+      tmp.file("p.json", problem_text(peaks, "[\"rinit\", \"prinit\"]", ", \"objectives\": [\"RRI2:linf\", \"RRL:linf\"]")));
+  Nsga2Settings s;
+  s.population = 8;
+  s.generations = 2;
+  s.seed = 4;
+  const Nsga2Result a = run_nsga2(*p, s, 1, {}, {});
+  const Nsga2Result b = run_nsga2(*p, s, 2, {}, {});
+  REQUIRE(a.population.size() == b.population.size());
+  for (size_t i = 0; i < a.population.size(); ++i) {
+    CHECK(a.population[i].x == b.population[i].x);
+    CHECK(a.population[i].f == b.population[i].f);
+  }
+}
+
+TEST_CASE("local search (LM): a noiseless truth with four settings changed comes back", "[turn-problem][localsearch]") {
+  // The truth: ring8 with injection radius, angle, radial momentum and the main voltages'
+  // common change moved by a fifth of their bound ranges; its own turns are the measurement
+  // (noiseless, 17 digits). From the nominal machine the fit must return the truth's values:
+  // they are determined (the turns depend on each), and without noise the only error left is
+  // the convergence tolerance (relative cost change 1e-9).
+  TempDir tmp;
+  Machine truth = load_machine(ring8("machine.json"));
+  const std::vector<std::string> names = {"phiinit", "prinit", "rinit", "vchange"};
+  std::vector<double> xt;
+  for (const auto& n : names) {
+    const DesignVariable& dv = truth.dvars.at(n);
+    xt.push_back(dvar_value(truth, n) + 0.2 * (dv.upper - dv.lower) * (n == "prinit" ? -1 : 1));
+  }
+  set_dvars(truth, names, xt);
+  std::vector<TurnRecord> turns;
+  const TrackModel model = make_track_model(truth);
+  track_particle(model, injection_state(effective_injection(truth), truth.particle.mass_MeV),
+                 machine_track_settings(truth), turns);
+  std::string csv = "probe,turn,r_mm,height,area,width_mm,flag\n";
+  char buf[160];
+  for (const auto& t : turns) {
+    std::snprintf(buf, sizeof buf, "%s,%d,%.17g,1,1,1,ok\n", model.probes[static_cast<size_t>(t.probe)].name.c_str(),
+                  t.turn, t.r_mm);
+    csv += buf;
+  }
+  const std::string peaks = tmp.file("truth.csv", csv);
+  auto p = load_turn_problem(tmp.file("p.json", problem_text(peaks, "[\"phiinit\", \"prinit\", \"rinit\", \"vchange\"]",
+                                                              ", \"sigma_mm\": 0.01")));
+  LocalSearchSettings s;
+  s.threads = 2;
+  const LocalSearchResult r = local_search(*p, p->start(), s);
+  CHECK(r.before.linf_mm > 1);
+  CHECK(r.after.linf_mm < 1e-3);  // noiseless: a micrometre is far above the convergence limit
+  for (size_t j = 0; j < names.size(); ++j) {
+    CHECK(r.variables[j].determined);
+    const double range = p->upper()[j] - p->lower()[j];
+    CHECK(std::fabs(r.x[j] - xt[j]) < 1e-4 * range);  // 1e-4 of the range: far inside the 20 % moved
+  }
+  CHECK(r.sigma_source == "problem file (sigma_mm)");
+  CHECK(r.evaluations > 0);
+}
