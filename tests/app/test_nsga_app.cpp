@@ -154,8 +154,12 @@ TEST_CASE("problem files: strict keys with file and key in the message, the comm
   CHECK(msg.find("variables/0") != std::string::npos);
   CHECK(code(R"({)" + vars + R"(, "objectives": 2, "evaluator": {"command": "true"}})") == 65);  // no format
   CHECK(code(R"({"format": "turnfit-problem/1", )" + vars + R"(, "objectives": 2})") == 64);  // no evaluator
-  CHECK(code(R"({"format": "turnfit-problem/1", )" + vars + R"(, "objectives": 2, "machine": "m.json"})", &msg) == 65);
-  CHECK(msg.find("not built in yet") != std::string::npos);
+  // A machine makes it a turn-pattern problem (test_turn_problem.cpp): a missing machine is 66,
+  // and its keys without a machine are refused with the reason.
+  CHECK(code(R"({"format": "turnfit-problem/1", )" + vars + R"(, "objectives": 2, "machine": "m.json"})", &msg) == 66);
+  CHECK(msg.find("m.json") != std::string::npos);
+  CHECK(code(R"({"format": "turnfit-problem/1", )" + vars + R"(, "objectives": 2, "peaks": "p.csv"})", &msg) == 65);
+  CHECK(msg.find("turn-pattern") != std::string::npos);
   CHECK(test::error_code([&] { load_problem(tmp.path + "/none.json", "", -1); }) == 66);
   CHECK(test::error_code([&] { load_problem("zdt9", "", -1); }) == 64);
 
