@@ -2,6 +2,7 @@
 #include <catch2/catch.hpp>
 #include <cmath>
 #include <sstream>
+#include <utility>
 
 #include "../support.hpp"
 #include "turnfit/field/map_io.hpp"
@@ -144,13 +145,23 @@ TEST_CASE("orbit: energy lists", "[orbit]") {
   }
 }
 
-TEST_CASE("orbit: PSI Ring reference orbits (FIXPO, physics.md)", "[orbit][shared]") {
-  TURNFIT_REQUIRE_SHARED(path, "data/psi-ring/bfield.dat");
-  PolarFieldMap map = read_field_map(path, MapFormat::psi_ring);
+namespace {
+
+/// The PSI Ring map's static equilibrium orbits at physics.md's two FIXPO reference energies
+/// (72 and 369.995 MeV), h = 6 at 50.65 MHz.
+std::pair<OrbitRow, OrbitRow> psi_reference_orbits(const std::string& map_path) {
+  PolarFieldMap map = read_field_map(map_path, MapFormat::psi_ring);
   OrbitSettings s;
   s.harmonic = 6;
   s.rf_MHz = 50.65;
-  OrbitRow a = closed_orbit(map, s, 72.0), b = closed_orbit(map, s, 369.995);
+  return {closed_orbit(map, s, 72.0), closed_orbit(map, s, 369.995)};
+}
+
+}  // namespace
+
+TEST_CASE("orbit: PSI Ring reference orbits (FIXPO, physics.md)", "[orbit][shared]") {
+  TURNFIT_REQUIRE_SHARED(path, "data/psi-ring/bfield.dat");
+  const auto [a, b] = psi_reference_orbits(path);
   REQUIRE(a.ok());
   REQUIRE(b.ok());
   // Tolerances: the accuracy the README and turnfit-orbit(1) (ACCURACY) promise against FIXPO,
@@ -173,11 +184,7 @@ TEST_CASE("orbit: PSI Ring revolution frequency and phase slip (regression)", "[
   // orbit finder's step count moves r by 2e-6 mm (turnfit-orbit(1)), far below them. Guards
   // the time-of-flight integration and the slip's sign and scale (slip = 360 (f_rf / f_rev - h)).
   TURNFIT_REQUIRE_SHARED(path, "data/psi-ring/bfield.dat");
-  PolarFieldMap map = read_field_map(path, MapFormat::psi_ring);
-  OrbitSettings s;
-  s.harmonic = 6;
-  s.rf_MHz = 50.65;
-  OrbitRow a = closed_orbit(map, s, 72.0), b = closed_orbit(map, s, 369.995);
+  const auto [a, b] = psi_reference_orbits(path);
   REQUIRE(a.ok());
   REQUIRE(b.ok());
   CHECK(a.f_rev_MHz == Approx(8.427142).epsilon(0).margin(5e-7));

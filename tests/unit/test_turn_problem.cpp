@@ -25,9 +25,8 @@ namespace {
 
 std::string ring8(const std::string& file) { return std::string(TURNFIT_TEST_DIR) + "/../share/turnfit/ring8/" + file; }
 
-/// The nominal ring8 machine's own turns as a peaks file: the problem's start then matches exactly.
-std::string nominal_peaks(const TempDir& tmp) {
-  const Machine m = load_machine(ring8("machine.json"));
+/// A machine's own turns as a peaks file (17 digits, so a problem at the machine matches exactly).
+std::string turns_as_peaks(const Machine& m, const TempDir& tmp, const std::string& name) {
   const TrackModel model = make_track_model(m);
   std::vector<TurnRecord> turns;
   track_particle(model, injection_state(effective_injection(m), m.particle.mass_MeV), machine_track_settings(m),
@@ -39,8 +38,11 @@ std::string nominal_peaks(const TempDir& tmp) {
                   t.turn, t.r_mm);
     csv += buf;
   }
-  return tmp.file("peaks.csv", csv);
+  return tmp.file(name, csv);
 }
+
+/// The nominal ring8 machine's own turns as a peaks file: the problem's start then matches exactly.
+std::string nominal_peaks(const TempDir& tmp) { return turns_as_peaks(load_machine(ring8("machine.json")), tmp, "peaks.csv"); }
 
 std::string problem_text(const std::string& peaks, const std::string& variables, const std::string& extra = "") {
   return "{\"format\": \"turnfit-problem/1\", \"machine\": \"" + ring8("machine.json") + "\", \"peaks\": \"" + peaks +
@@ -237,18 +239,7 @@ TEST_CASE("local search (LM): a noiseless truth with four settings changed comes
     xt.push_back(dvar_value(truth, n) + 0.2 * (dv.upper - dv.lower) * (n == "prinit" ? -1 : 1));
   }
   set_dvars(truth, names, xt);
-  std::vector<TurnRecord> turns;
-  const TrackModel model = make_track_model(truth);
-  track_particle(model, injection_state(effective_injection(truth), truth.particle.mass_MeV),
-                 machine_track_settings(truth), turns);
-  std::string csv = "probe,turn,r_mm,height,area,width_mm,flag\n";
-  char buf[160];
-  for (const auto& t : turns) {
-    std::snprintf(buf, sizeof buf, "%s,%d,%.17g,1,1,1,ok\n", model.probes[static_cast<size_t>(t.probe)].name.c_str(),
-                  t.turn, t.r_mm);
-    csv += buf;
-  }
-  const std::string peaks = tmp.file("truth.csv", csv);
+  const std::string peaks = turns_as_peaks(truth, tmp, "truth.csv");
   auto p = load_turn_problem(tmp.file("p.json", problem_text(peaks, "[\"phiinit\", \"prinit\", \"rinit\", \"vchange\"]",
                                                               ", \"sigma_mm\": 0.01")));
   LocalSearchSettings s;
