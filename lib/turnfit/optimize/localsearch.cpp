@@ -58,7 +58,7 @@ struct Residuals {
   mutable std::atomic<size_t> evaluations{0}, failed{0};
   // The last Jacobian computed, and where (the final statistics reuse it).
   mutable std::mutex mu;
-  mutable std::vector<double> jac_u;
+  mutable std::vector<double> jac_u, jac_res;
   mutable Eigen::MatrixXd jac;
 
   explicit Residuals(const TurnPatternProblem& problem) : p(problem) {}
@@ -109,6 +109,7 @@ struct Residuals {
         for (size_t j = 0; j < n; ++j) jac_rowmajor[i * n + j] = J(i, j);
     std::lock_guard<std::mutex> lock(mu);
     jac_u.assign(u, u + n);
+    jac_res = out[0];
     jac = std::move(J);
   }
 };
@@ -120,8 +121,21 @@ class TurnCost final : public ceres::CostFunction {
     mutable_parameter_block_sizes()->push_back(static_cast<int>(r.n));
   }
   bool Evaluate(double const* const* params, double* res, double** jac) const override {
-    if (jac && jac[0]) r_.fill_with_jacobian(params[0], res, jac[0]);
-    else r_.fill(params[0], res);
+    // Ceres asks for the same point more than once (a bounded problem's candidate with its
+    // Jacobian, then its cost, then its Jacobian again): answer from the last Jacobian's point.
+    const double* u = params[0];
+    {
+      std::lock_guard<std::mutex> lock(r_.mu);
+      if (!r_.jac_u.empty() && std::equal(r_.jac_u.begin(), r_.jac_u.end(), u)) {
+        std::copy(r_.jac_res.begin(), r_.jac_res.end(), res);
+        if (jac && jac[0])
+          for (size_t i = 0; i < r_.nres; ++i)
+            for (size_t j = 0; j < r_.n; ++j) jac[0][i * r_.n + j] = r_.jac(static_cast<Eigen::Index>(i), static_cast<Eigen::Index>(j));
+        return true;
+      }
+    }
+    if (jac && jac[0]) r_.fill_with_jacobian(u, res, jac[0]);
+    else r_.fill(u, res);
     return true;
   }
 
