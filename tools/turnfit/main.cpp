@@ -20,6 +20,7 @@ const char* const kTools[][2] = {
     {"tc-fit", "rational fits of trim coil phase-shift scans: normalized field profiles"},
     {"plot", "figures (PNG, SVG) of profiles and peaks, turn separation, residuals, trim coil fits"},
     {"nsga", "NSGA-II with constraints: threads or MPI, population log that resumes a killed run"},
+    {"localsearch", "fit a turn-pattern problem's design variables: Levenberg-Marquardt, uncertainties"},
 };
 
 void usage(std::ostream& os) {

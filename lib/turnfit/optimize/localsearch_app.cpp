@@ -1,0 +1,283 @@
+// turnfit-localsearch as a library (see localsearch_app.hpp).
+#include "turnfit/optimize/localsearch_app.hpp"
+
+#include <cmath>
+#include <filesystem>
+#include <iostream>
+#include <limits>
+#include <memory>
+#include <sstream>
+
+#include "turnfit/io/error.hpp"
+#include "turnfit/io/json.hpp"
+#include "turnfit/io/output.hpp"
+#include "turnfit/io/text.hpp"
+#include "turnfit/metrics/compare_app.hpp"
+#include "turnfit/optimize/problem_file.hpp"
+
+namespace turnfit {
+
+void add_localsearch_options(CLI::App& app, LocalSearchOptions& o) {
+  app.description(
+      "Fits a turn-pattern problem's design variables (turnfit-problem(5): machine, measured peaks,\n"
+      "variables, objectives) to the measured turns by bounded Levenberg-Marquardt on every turn's\n"
+      "residual, from the machine's values or a --start design. Writes the best design as a dvars\n"
+      "file (-o, default stdout) that turnfit-track --dvars reads; --report adds each variable's\n"
+      "uncertainty, correlations and what the data do not determine.");
+  app.add_option("problem", o.problem, "Turn-pattern problem file (turnfit-problem/1 with a machine)")->required();
+  app.add_option("--start", o.start,
+                 "Start design: a dvars file {name: value}, a turnfit-nsga front or population log "
+                 "(default: the machine's values)");
+  app.add_option("--pick", o.pick, "Design of a front or log to start from: linf (smallest largest objective) or sum")
+      ->check(CLI::IsMember({"linf", "sum"}));
+  app.add_option("--report", o.report, "Write the fit's report (JSON) here");
+  app.add_option("--residuals", o.residuals, "Write the result's residuals (turnfit-compare's CSV) here");
+  app.add_option("--max-iterations", o.settings.max_iterations, "Levenberg-Marquardt iterations per pass (default 60)")
+      ->check(CLI::Range(1, 100000));
+  app.add_flag("--central", o.settings.central, "Central differences (twice the evaluations per Jacobian)");
+  app.add_option("--fd-step", o.settings.fd_step, "Finite-difference step, fraction of each bound range (default 1e-6)")
+      ->check(CLI::Range(1e-12, 0.1));
+  app.add_option("--weak-prior", o.settings.weak_prior_range,
+                 "Width of the weak prior toward the start, in bound ranges (default 1; 0: none)")
+      ->check(CLI::Range(0.0, 1e6));
+  cli::add_common_options(app, o.common, cli::kOutput | cli::kThreads);
+}
+
+namespace {
+
+nlohmann::json jnum(double v) { return std::isfinite(v) ? nlohmann::json(v) : nlohmann::json(nullptr); }
+
+std::string shown(const std::string& path) { return path == "-" ? "<stdin>" : path; }
+
+/// The best design of a front or log: feasible (violation 0), all objectives finite.
+std::vector<double> pick_design(const TurnPatternProblem& p, const std::vector<nlohmann::json>& designs,
+                                const std::string& file, const std::string& pick) {
+  double best = std::numeric_limits<double>::infinity();
+  const nlohmann::json* chosen = nullptr;
+  for (const auto& design : designs) {
+    const nlohmann::json* d = &design;
+    if (!d->is_object() || !d->contains("x") || !d->contains("f")) continue;
+    const auto& viol = (*d)["violation"];
+    if (!viol.is_number() || viol.get<double>() != 0) continue;
+    double worst = 0, sum = 0;
+    bool finite = (*d)["f"].is_array() && !(*d)["f"].empty();
+    for (const auto& f : (*d)["f"]) {
+      if (!f.is_number()) {
+        finite = false;
+        break;
+      }
+      worst = std::max(worst, f.get<double>());
+      sum += f.get<double>();
+    }
+    if (!finite) continue;
+    const double key = pick == "sum" ? sum : worst;
+    if (key < best) {
+      best = key;
+      chosen = d;
+    }
+  }
+  if (!chosen) throw data_error(file, 0, "no feasible design with finite objectives to start from");
+  const auto& x = (*chosen)["x"];
+  std::vector<double> out = p.start();
+  const auto& vars = p.variables();
+  if (!x.is_object()) throw data_error(file, 0, "the design's \"x\" is not an object by variable name");
+  for (size_t j = 0; j < vars.size(); ++j) {
+    if (!x.contains(vars[j].name))
+      throw data_error(file, 0, "the design has no value for " + vars[j].name + " (another problem's front?)");
+    if (!x[vars[j].name].is_number()) throw data_error(file, 0, "x/" + vars[j].name + ": expected a number");
+    out[j] = x[vars[j].name].get<double>();
+  }
+  return out;
+}
+
+}  // namespace
+
+std::vector<double> read_start(const TurnPatternProblem& p, const std::string& path, const std::string& pick) {
+  std::vector<double> x = p.start();
+  if (path.empty()) return x;
+  const std::string file = shown(path);
+  const std::string text = read_input(path).text;
+  size_t first = text.find_first_not_of(" \t\r\n");
+  if (first == std::string::npos) throw data_error(file, 0, "empty start file");
+  std::vector<nlohmann::json> designs;
+  if (text[first] == '[') {  // an nsga front
+    nlohmann::json j = parse_json(text, file);
+    for (const auto& d : j) designs.push_back(d);
+    x = pick_design(p, designs, file, pick);
+  } else {
+    // A dvars object, or a population log (one JSON object a line, with "record" keys).
+    std::istringstream in(text);
+    std::string line;
+    nlohmann::json first_doc;
+    bool log = false;
+    if (std::getline(in, line)) {
+      try {
+        first_doc = nlohmann::json::parse(line);
+        log = first_doc.is_object() && first_doc.contains("record");
+      } catch (const nlohmann::json::exception&) {
+        log = false;
+      }
+    }
+    if (log) {
+      std::istringstream all(text);
+      while (std::getline(all, line)) {
+        if (line.empty()) continue;
+        nlohmann::json rec;
+        try {
+          rec = nlohmann::json::parse(line);
+        } catch (const nlohmann::json::exception&) {
+          continue;  // a torn last line of a killed run
+        }
+        if (rec.is_object() && rec.value("record", "") == "eval") designs.push_back(rec);
+      }
+      x = pick_design(p, designs, file, pick);
+    } else {
+      nlohmann::json j = parse_json(text, file);
+      if (!j.is_object()) throw data_error(file, 0, "expected a dvars object {name: value}, a front or a log");
+      for (auto it = j.begin(); it != j.end(); ++it) {
+        size_t k = 0;
+        while (k < p.variables().size() && p.variables()[k].name != it.key()) ++k;
+        if (k == p.variables().size())
+          throw data_error(file, 0, "/" + it.key() + ": not one of the problem's variables");
+        if (!it.value().is_number()) throw data_error(file, 0, "/" + it.key() + ": expected a number");
+        x[k] = it.value().get<double>();
+      }
+    }
+  }
+  for (size_t j = 0; j < x.size(); ++j)
+    if (!(x[j] >= p.lower()[j] && x[j] <= p.upper()[j]))
+      throw data_error(file, 0, p.variables()[j].name + " = " + cli::fmt(x[j]) + " lies outside the problem's bounds [" +
+                                    cli::fmt(p.lower()[j]) + ", " + cli::fmt(p.upper()[j]) + "]");
+  return x;
+}
+
+namespace {
+
+nlohmann::json summary_json(const TurnPatternProblem& p, const FitSummary& f, double chi2_dof) {
+  nlohmann::json j;
+  j["simulated"] = f.ok;
+  if (!f.ok) {
+    j["reason"] = f.reason;
+    return j;
+  }
+  nlohmann::json objs = nlohmann::json::array();
+  for (size_t i = 0; i < f.objectives.size(); ++i)
+    objs.push_back({{"name", objective_spec(p.objectives()[i])}, {"value_mm", jnum(f.objectives[i])}});
+  j["objectives"] = objs;
+  j["linf_mm"] = jnum(f.linf_mm);
+  j["mae_mm"] = jnum(f.mae_mm);
+  j["rms_mm"] = jnum(f.rms_mm);
+  j["chi2"] = jnum(f.chi2);
+  j["chi2_dof"] = jnum(chi2_dof);
+  j["matched"] = f.matched;
+  j["turn_count_violation"] = f.violation;
+  return j;
+}
+
+}  // namespace
+
+nlohmann::json localsearch_report(const TurnPatternProblem& p, const LocalSearchResult& r, const std::string& start,
+                                  bool provenance) {
+  nlohmann::json j;
+  j["format"] = "turnfit-localsearch/1";
+  if (provenance) j["provenance"] = cli::provenance();
+  j["problem"] = p.file();
+  j["method"] = "lm";
+  j["start"] = start.empty() ? "the machine's values" : shown(start);
+  nlohmann::json sg = nlohmann::json::object();
+  for (size_t q = 0; q < r.sigma_probes.size(); ++q) sg[r.sigma_probes[q]] = jnum(r.sigma_mm[q]);
+  j["sigma_mm"] = {{"source", r.sigma_source}, {"per_probe", sg}};
+  const double dof = static_cast<double>(r.before.matched) - static_cast<double>(p.n_variables());
+  j["before"] = summary_json(p, r.before, dof > 0 ? r.before.chi2 / dof : std::nan(""));
+  j["after"] = summary_json(p, r.after, r.chi2_dof);
+  j["evaluations"] = r.evaluations;
+  j["failed_evaluations"] = r.failed_evaluations;
+  j["iterations"] = r.iterations;
+  j["termination"] = r.termination;
+  j["wall_s"] = r.wall_s;
+  j["cpu_s"] = r.cpu_s;
+  nlohmann::json vars = nlohmann::json::array();
+  for (const auto& v : r.variables)
+    vars.push_back({{"name", v.name},
+                    {"unit", v.unit},
+                    {"start", jnum(v.start)},
+                    {"value", jnum(v.value)},
+                    {"sigma", jnum(v.sigma)},
+                    {"lower", jnum(v.lower)},
+                    {"upper", jnum(v.upper)},
+                    {"determined", v.determined},
+                    {"at_bound", v.at_bound}});
+  j["variables"] = vars;
+  nlohmann::json corr = nlohmann::json::array();
+  for (Eigen::Index a = 0; a < r.correlation.rows(); ++a) {
+    nlohmann::json row = nlohmann::json::array();
+    for (Eigen::Index b = 0; b < r.correlation.cols(); ++b) row.push_back(jnum(r.correlation(a, b)));
+    corr.push_back(row);
+  }
+  j["correlation"] = corr;
+  nlohmann::json sv = nlohmann::json::array();
+  for (double s : r.singular_values) sv.push_back(jnum(s));
+  j["singular_values"] = sv;
+  j["identifiability"] = r.identifiability;
+  return j;
+}
+
+int run_localsearch(const LocalSearchOptions& o) {
+  const std::string out_path = o.common.output.empty() ? "-" : o.common.output;
+  int stdout_users = (out_path == "-") + (o.report == "-") + (o.residuals == "-");
+  if (stdout_users > 1) throw usage_error("only one of -o, --report and --residuals can be stdout");
+  if (o.problem == "-" && o.start == "-") throw usage_error("the problem and --start cannot both be stdin");
+  LoadedProblem lp = load_problem(o.problem, "", -1);
+  auto* p = dynamic_cast<const TurnPatternProblem*>(lp.problem.get());
+  if (!p)
+    throw usage_error(shown(o.problem) + " is not a turn-pattern problem (it names no machine): turnfit-localsearch "
+                                         "fits a machine to measured turns");
+  const std::vector<double> x0 = read_start(*p, o.start, o.pick);
+
+  LocalSearchSettings s = o.settings;
+  s.threads = cli::resolve_threads(o.common.threads);
+  if (!o.common.quiet && cli::stderr_is_tty())
+    s.progress = [](int pass, int it, double cost) {
+      std::cerr << "\rturnfit-localsearch: pass " << pass << " iteration " << it << "  cost " << cli::fmt(cost, 6)
+                << "     " << std::flush;
+    };
+  // Every output is opened before the fit (an unwritable path fails at once) and committed
+  // after it, so a failed or killed run leaves earlier files untouched.
+  std::unique_ptr<OutputFile> best = std::make_unique<OutputFile>(out_path);
+  std::unique_ptr<OutputFile> report = o.report.empty() ? nullptr : std::make_unique<OutputFile>(o.report);
+  std::unique_ptr<OutputFile> residuals = o.residuals.empty() ? nullptr : std::make_unique<OutputFile>(o.residuals);
+
+  const LocalSearchResult r = local_search(*p, x0, s);
+  if (s.progress) std::cerr << "\n";
+
+  nlohmann::json dv = nlohmann::json::object();
+  for (size_t j = 0; j < r.x.size(); ++j) dv[p->variables()[j].name] = r.x[j];
+  best->stream() << dv.dump(1) << "\n";
+  if (report) report->stream() << localsearch_report(*p, r, o.start, !o.common.no_provenance).dump(1) << "\n";
+  if (residuals) {
+    const TurnPatternResult fin = p->simulate(r.x);
+    CompareReport cr = make_compare_report(p->measured(), fin.simulated, p->objectives(), 0);
+    write_residuals_csv(residuals->stream(), cr, !o.common.no_provenance);
+  }
+  if (residuals) residuals->commit();
+  if (report) report->commit();
+  best->commit();
+
+  if (!o.common.quiet) {
+    char buf[512];
+    std::snprintf(buf, sizeof buf,
+                  "turnfit-localsearch: worst turn %.3f -> %.3f mm, RMS %.3f -> %.3f mm, chi2/dof %.3g (sigma %s); "
+                  "%zu evaluations, %d iterations, %.1f s (%s)\n",
+                  r.before.linf_mm, r.after.linf_mm, r.before.rms_mm, r.after.rms_mm, r.chi2_dof,
+                  r.sigma_source.rfind("problem", 0) == 0 ? "from the problem" : "estimated", r.evaluations,
+                  r.iterations, r.wall_s, r.termination.c_str());
+    std::cerr << buf;
+    for (const auto& v : r.variables)
+      if (v.at_bound) cli::warn(o.common, v.name + " ended on a bound (" + cli::fmt(v.value) + ")");
+    if (r.failed_evaluations)
+      cli::warn(o.common, std::to_string(r.failed_evaluations) + " evaluations could not be simulated (penalized)");
+  }
+  return 0;
+}
+
+}  // namespace turnfit
