@@ -85,7 +85,8 @@ struct Residuals {
   }
 
   /// Residuals at u and the Jacobian d r / d u (row-major nres x n), its columns evaluated in
-  /// parallel. A forward step that would leave [0, 1] goes backward instead.
+  /// parallel. A forward step that would leave [0, 1] goes backward instead (and a central
+  /// difference becomes one-sided there).
   void fill_with_jacobian(const double* u, double* res, double* jac_rowmajor) const {
     const size_t ncols = central ? 2 * n : n;
     std::vector<std::vector<double>> out(ncols + 1, std::vector<double>(nres));
@@ -101,9 +102,12 @@ struct Residuals {
     });
     std::copy(out[0].begin(), out[0].end(), res);
     Eigen::MatrixXd J(nres, n);
-    for (size_t j = 0; j < n; ++j)
+    for (size_t j = 0; j < n; ++j) {
+      // Central only where both sides lie inside the bounds; one-sided at a bound.
+      const bool two = central && u[j] + h <= 1 && u[j] - h >= 0;
       for (size_t i = 0; i < nres; ++i)
-        J(i, j) = central ? (out[1 + j][i] - out[1 + n + j][i]) / (2 * step[j]) : (out[1 + j][i] - out[0][i]) / step[j];
+        J(i, j) = two ? (out[1 + j][i] - out[1 + n + j][i]) / (2 * step[j]) : (out[1 + j][i] - out[0][i]) / step[j];
+    }
     if (jac_rowmajor)
       for (size_t i = 0; i < nres; ++i)
         for (size_t j = 0; j < n; ++j) jac_rowmajor[i * n + j] = J(i, j);
