@@ -118,6 +118,10 @@ struct Residuals {
   }
 };
 
+/// The cost in unbounded angles theta, u = (sin theta + 1) / 2 (MINUIT's transform for a
+/// bounded variable). Ceres' own bounds would run a projected line search whose every trial
+/// point costs a whole Jacobian; the transform keeps the problem unconstrained, so a rejected
+/// step costs one design.
 class TurnCost final : public ceres::CostFunction {
  public:
   explicit TurnCost(const Residuals& r) : r_(r) {
@@ -125,23 +129,34 @@ class TurnCost final : public ceres::CostFunction {
     mutable_parameter_block_sizes()->push_back(static_cast<int>(r.n));
   }
   bool Evaluate(double const* const* params, double* res, double** jac) const override {
-    // Ceres asks for the same point more than once (a bounded problem's candidate with its
-    // Jacobian, then its cost, then its Jacobian again): answer from the last Jacobian's point.
-    const double* u = params[0];
+    std::vector<double> u(r_.n);
+    for (size_t j = 0; j < r_.n; ++j) u[j] = u_of_theta(params[0][j]);
+    const bool want = jac && jac[0];
+    bool cached = false;
     {
+      // Ceres may ask for a point again (the final statistics too): answer from the last Jacobian.
       std::lock_guard<std::mutex> lock(r_.mu);
-      if (!r_.jac_u.empty() && std::equal(r_.jac_u.begin(), r_.jac_u.end(), u)) {
+      if (!r_.jac_u.empty() && r_.jac_u == u) {
         std::copy(r_.jac_res.begin(), r_.jac_res.end(), res);
-        if (jac && jac[0])
-          for (size_t i = 0; i < r_.nres; ++i)
-            for (size_t j = 0; j < r_.n; ++j) jac[0][i * r_.n + j] = r_.jac(static_cast<Eigen::Index>(i), static_cast<Eigen::Index>(j));
-        return true;
+        cached = true;
       }
     }
-    if (jac && jac[0]) r_.fill_with_jacobian(u, res, jac[0]);
-    else r_.fill(u, res);
+    if (!cached) {
+      if (want) r_.fill_with_jacobian(u.data(), res, nullptr);
+      else r_.fill(u.data(), res);
+    }
+    if (want) {
+      std::lock_guard<std::mutex> lock(r_.mu);
+      for (size_t j = 0; j < r_.n; ++j) {
+        const double du = 0.5 * std::cos(params[0][j]);  // chain rule: dr/dtheta = dr/du du/dtheta
+        for (size_t i = 0; i < r_.nres; ++i)
+          jac[0][i * r_.n + j] = r_.jac(static_cast<Eigen::Index>(i), static_cast<Eigen::Index>(j)) * du;
+      }
+    }
     return true;
   }
+  static double u_of_theta(double t) { return 0.5 * (std::sin(t) + 1); }
+  static double theta_of_u(double u) { return std::asin(2 * std::min(std::max(u, 1e-6), 1 - 1e-6) - 1); }
 
  private:
   const Residuals& r_;
@@ -162,12 +177,10 @@ class ProgressCallback final : public ceres::IterationCallback {
 
 /// One Levenberg-Marquardt pass from u (updated in place).
 ceres::Solver::Summary lm_pass(const Residuals& res, std::vector<double>& u, const LocalSearchSettings& s, int pass) {
+  std::vector<double> theta(res.n);
+  for (size_t j = 0; j < res.n; ++j) theta[j] = TurnCost::theta_of_u(u[j]);
   ceres::Problem problem;
-  problem.AddResidualBlock(new TurnCost(res), nullptr, u.data());
-  for (size_t j = 0; j < res.n; ++j) {
-    problem.SetParameterLowerBound(u.data(), static_cast<int>(j), 0.0);
-    problem.SetParameterUpperBound(u.data(), static_cast<int>(j), 1.0);
-  }
+  problem.AddResidualBlock(new TurnCost(res), nullptr, theta.data());
   ceres::Solver::Options o;
   o.minimizer_type = ceres::TRUST_REGION;
   o.trust_region_strategy_type = ceres::LEVENBERG_MARQUARDT;
@@ -184,6 +197,7 @@ ceres::Solver::Summary lm_pass(const Residuals& res, std::vector<double>& u, con
   o.callbacks.push_back(&cb);
   ceres::Solver::Summary summary;
   ceres::Solve(o, &problem, &summary);
+  for (size_t j = 0; j < res.n; ++j) u[j] = TurnCost::u_of_theta(theta[j]);
   return summary;
 }
 
@@ -333,7 +347,7 @@ LocalSearchResult local_search(const TurnPatternProblem& p, const std::vector<do
     v.lower = p.lower()[j];
     v.upper = p.upper()[j];
     v.determined = std::sqrt(std::max(0.0, cov_data(j, j))) < 0.1;
-    v.at_bound = u[j] <= 1e-9 || u[j] >= 1 - 1e-9;
+    v.at_bound = u[j] <= 1e-6 || u[j] >= 1 - 1e-6;  // the sine transform reaches a bound asymptotically
     out.variables.push_back(v);
     for (size_t k = 0; k < n; ++k) {
       const double d = std::sqrt(std::max(0.0, cov(j, j) * cov(k, k)));

@@ -51,7 +51,7 @@ struct FittedVariable {
   double sigma = 0;       ///< 1-sigma uncertainty from the fit (priors included)
   double lower = 0, upper = 0;
   bool determined = false;  ///< the data fix it to better than a tenth of its bound range
-  bool at_bound = false;    ///< the fit ended on a bound
+  bool at_bound = false;    ///< the fit ended on a bound (within 1e-6 of its range)
 };
 
 /// What the local search found.
