@@ -1,5 +1,6 @@
 // Built-in and file-defined problems, and the external-command evaluator.
 #include "turnfit/optimize/problem_file.hpp"
+#include "turnfit/optimize/problem_keys.hpp"
 #include "turnfit/optimize/turn_problem.hpp"
 
 #include <algorithm>
@@ -171,24 +172,7 @@ bool looks_like_file(const std::string& s) {
 }
 
 /// A problem file's parts, with errors that name the file and the key.
-struct FileReader {
-  std::string file;
-  [[noreturn]] void fail(const std::string& key, const std::string& what) const {
-    throw data_error(file, 0, key + ": " + what);
-  }
-  const nlohmann::json& need(const nlohmann::json& obj, const std::string& key, const std::string& where) const {
-    auto it = obj.find(key);
-    if (it == obj.end()) fail(where.empty() ? key : where + "/" + key, "missing");
-    return *it;
-  }
-  double number(const nlohmann::json& v, const std::string& where) const {
-    if (!v.is_number() || !std::isfinite(v.get<double>())) fail(where, "expected a finite number");
-    return v.get<double>();
-  }
-  std::string text(const nlohmann::json& v, const std::string& where) const {
-    if (!v.is_string() || v.get<std::string>().empty()) fail(where, "expected a non-empty string");
-    return v.get<std::string>();
-  }
+struct FileReader : ProblemKeys {
   /// "objectives"/"constraints": a list of names or a count.
   std::vector<std::string> names(const nlohmann::json& v, const std::string& where, const char* stem) const {
     if (v.is_number_unsigned()) return numbered(stem, v.get<size_t>());
@@ -225,11 +209,20 @@ LoadedProblem load_problem(const std::string& name_or_file, const std::string& e
   if (n_variables || n_objectives)
     throw usage_error("--variables and --objectives size the built-in problems only, not " + name_or_file);
   const std::string file = name_or_file == "-" ? "<stdin>" : name_or_file;
-  FileReader rd{file};
+  FileReader rd{{file}};
   const nlohmann::json j = read_json(name_or_file);
   if (!j.is_object()) throw data_error(file, 0, "a problem file is a JSON object");
   if (rd.text(rd.need(j, "format", ""), "format") != "turnfit-problem/1")
     rd.fail("format", "expected \"turnfit-problem/1\"");
+  // The hypervolume reference, once the objectives are known (both kinds of problem).
+  auto read_reference = [&] {
+    std::vector<double> ref;
+    if (!j.contains("reference")) return ref;
+    const auto& r = j["reference"];
+    if (!r.is_array() || r.size() != lp.objective_names.size()) rd.fail("reference", "expected one number per objective");
+    for (size_t i = 0; i < r.size(); ++i) ref.push_back(rd.number(r[i], "reference/" + std::to_string(i)));
+    return ref;
+  };
   if (j.contains("machine")) {
     // The turn-pattern kind: evaluated in process (track + compare).
     if (!eval_cmd.empty())
@@ -240,12 +233,7 @@ LoadedProblem load_problem(const std::string& name_or_file, const std::string& e
     auto tp = TurnPatternProblem::from_json(j, file, dir);
     for (const auto& o : tp->objectives()) lp.objective_names.push_back(o.name.empty() ? objective_spec(o) : o.name);
     if (tp->turn_count_constraint()) lp.constraint_names = {"turn-count"};
-    if (j.contains("reference")) {
-      const auto& r = j["reference"];
-      if (!r.is_array() || r.size() != lp.objective_names.size())
-        rd.fail("reference", "expected one number per objective");
-      for (size_t i = 0; i < r.size(); ++i) lp.reference.push_back(rd.number(r[i], "reference/" + std::to_string(i)));
-    }
+    lp.reference = read_reference();
     lp.problem = std::move(tp);
     lp.source = file;
     return lp;
@@ -282,12 +270,7 @@ LoadedProblem load_problem(const std::string& name_or_file, const std::string& e
   lp.objective_names = rd.names(rd.need(j, "objectives", ""), "objectives", "f");
   if (lp.objective_names.empty()) rd.fail("objectives", "at least one objective");
   if (j.contains("constraints")) lp.constraint_names = rd.names(j["constraints"], "constraints", "g");
-  if (j.contains("reference")) {
-    const auto& r = j["reference"];
-    if (!r.is_array() || r.size() != lp.objective_names.size())
-      rd.fail("reference", "expected one number per objective");
-    for (size_t i = 0; i < r.size(); ++i) lp.reference.push_back(rd.number(r[i], "reference/" + std::to_string(i)));
-  }
+  lp.reference = read_reference();
   std::string command = eval_cmd, cwd;
   double limit = timeout_s;
   if (j.contains("evaluator")) {

@@ -7,6 +7,7 @@
 
 #include "turnfit/io/csv.hpp"
 #include "turnfit/io/error.hpp"
+#include "turnfit/optimize/problem_keys.hpp"
 
 namespace turnfit {
 
@@ -43,22 +44,6 @@ TurnTable read_measured_turns(const std::vector<std::string>& paths) {
 
 namespace {
 
-/// Errors that name the problem file and the key.
-struct Keys {
-  std::string file;
-  [[noreturn]] void fail(const std::string& key, const std::string& what) const {
-    throw data_error(file, 0, key + ": " + what);
-  }
-  double number(const nlohmann::json& v, const std::string& key) const {
-    if (!v.is_number() || !std::isfinite(v.get<double>())) fail(key, "expected a finite number");
-    return v.get<double>();
-  }
-  std::string text(const nlohmann::json& v, const std::string& key) const {
-    if (!v.is_string() || v.get<std::string>().empty()) fail(key, "expected a non-empty string");
-    return v.get<std::string>();
-  }
-};
-
 std::string resolve(const std::string& dir, const std::string& path) {
   if (path == "-" || path.empty() || path.front() == '/' || dir.empty()) return path;
   return (std::filesystem::path(dir) / path).lexically_normal().string();
@@ -83,7 +68,7 @@ TurnPatternProblem::TurnPatternProblem(std::string name, std::vector<double> low
 
 std::unique_ptr<TurnPatternProblem> TurnPatternProblem::from_json(const nlohmann::json& j, const std::string& file,
                                                                   const std::string& dir) {
-  Keys k{file};
+  ProblemKeys k{file};
   static const std::set<std::string> known = {"format",     "name",        "description", "machine",  "peaks",
                                               "variables",  "objectives",  "constraints", "sigma_mm", "reference"};
   for (auto it = j.begin(); it != j.end(); ++it)
@@ -92,8 +77,7 @@ std::unique_ptr<TurnPatternProblem> TurnPatternProblem::from_json(const nlohmann
                        "variables, objectives, constraints, sigma_mm, reference)");
 
   // The machine, and every file its model reads.
-  if (!j.contains("machine")) k.fail("machine", "missing");
-  const std::string machine_path = resolve(dir, k.text(j["machine"], "machine"));
+  const std::string machine_path = resolve(dir, k.text(k.need(j, "machine", ""), "machine"));
   Machine m = load_machine(machine_path);
   if (!m.injection) k.fail("machine", machine_path + " has no injection block to track from");
   if (m.probes.empty()) k.fail("machine", machine_path + " has no probes: it records no turns");
@@ -102,14 +86,13 @@ std::unique_ptr<TurnPatternProblem> TurnPatternProblem::from_json(const nlohmann
     k.fail("machine", machine_path + ": /tracking/turns: the problem tracks the machine's turn count; give one");
 
   // Measured turns.
-  if (!j.contains("peaks")) k.fail("peaks", "missing");
+  const auto& jp = k.need(j, "peaks", "");
   std::vector<std::string> peak_files;
-  if (j["peaks"].is_array()) {
-    if (j["peaks"].empty()) k.fail("peaks", "an empty list");
-    for (size_t i = 0; i < j["peaks"].size(); ++i)
-      peak_files.push_back(resolve(dir, k.text(j["peaks"][i], "peaks/" + std::to_string(i))));
+  if (jp.is_array()) {
+    if (jp.empty()) k.fail("peaks", "an empty list");
+    for (size_t i = 0; i < jp.size(); ++i) peak_files.push_back(resolve(dir, k.text(jp[i], "peaks/" + std::to_string(i))));
   } else {
-    peak_files.push_back(resolve(dir, k.text(j["peaks"], "peaks")));
+    peak_files.push_back(resolve(dir, k.text(jp, "peaks")));
   }
   TurnTable measured = read_measured_turns(peak_files);
   if (measured.points.empty()) k.fail("peaks", "no measured turn in " + measured.source);
