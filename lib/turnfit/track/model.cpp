@@ -8,7 +8,6 @@
 #include <utility>
 
 #include "turnfit/field/load.hpp"
-#include "turnfit/io/csv.hpp"
 #include "turnfit/io/error.hpp"
 #include "turnfit/physics/particle.hpp"
 
@@ -282,19 +281,9 @@ ModelFiles read_model_files(const Machine& m) {
   f.map_scale = m.field.scale;
   for (const auto& c : m.cavities)
     if (!c.profile.empty() && !f.profiles.count(c.profile)) f.profiles.emplace(c.profile, VoltageProfile::read(c.profile));
-  for (const auto& c : m.trimcoils) {
-    if (c.type != "table" || c.table.empty() || f.coil_tables.count(c.table)) continue;
-    CsvTable t = CsvTable::read(c.table);
-    t.require_columns({"r_mm", "b_shape"});
-    const size_t cr = t.column("r_mm"), cs = t.column("b_shape");
-    auto& tab = f.coil_tables[c.table];
-    for (size_t i = 0; i < t.rows(); ++i) {
-      tab.first.push_back(t.number(i, cr));
-      tab.second.push_back(t.number(i, cs));
-      if (i > 0 && !(tab.first[i] > tab.first[i - 1])) throw data_error(t.name(), t.line(i), "r_mm must increase strictly");
-    }
-    if (tab.first.size() < 2) throw data_error(t.name(), 0, "a trim coil table needs at least 2 rows");
-  }
+  for (const auto& c : m.trimcoils)
+    if (c.type == "table" && !c.table.empty() && !f.coil_tables.count(c.table))
+      f.coil_tables.emplace(c.table, read_coil_table(c.table));
   return f;
 }
 
@@ -304,7 +293,7 @@ TrackModel make_track_model(const Machine& m, const ModelOptions& opt, const Mod
   if (opt.opal_map) t.opal_map.emplace(t.map);
   const int sym = t.map.grid().symmetry;
   for (const auto& c : m.trimcoils) {
-    const std::pair<std::vector<double>, std::vector<double>>* table = nullptr;
+    const CoilTable* table = nullptr;
     if (files && c.type == "table" && !c.table.empty()) {
       auto it = files->coil_tables.find(c.table);
       if (it != files->coil_tables.end()) table = &it->second;
@@ -312,8 +301,8 @@ TrackModel make_track_model(const Machine& m, const ModelOptions& opt, const Mod
     if (table) {
       TrimCoil mem = c;  // the table as read, in memory (same rows, same monotone slopes)
       mem.table.clear();
-      mem.table_r_mm = table->first;
-      mem.table_shape = table->second;
+      mem.table_r_mm = table->r_mm;
+      mem.table_shape = table->shape;
       t.coils.emplace_back(mem, sym);
     } else {
       t.coils.emplace_back(c, sym);

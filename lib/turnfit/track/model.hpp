@@ -120,8 +120,7 @@ struct ModelFiles {
   int map_symmetry = 0;
   double map_scale = 1;
   std::map<std::string, VoltageProfile> profiles;  ///< cavity profiles by resolved path
-  /// Trim coil tables (type table) by resolved path: radii [mm] and shape values.
-  std::map<std::string, std::pair<std::vector<double>, std::vector<double>>> coil_tables;
+  std::map<std::string, CoilTable> coil_tables;  ///< trim coil tables (type table) by resolved path
 };
 
 /// Reads every file the machine's model needs (EX_NOINPUT / EX_DATAERR naming the file).

@@ -52,6 +52,20 @@ void rational(const std::vector<double>& num, const std::vector<double>& den, do
   d2q = (d2f - 2 * dq * dg - q * d2g) / g;
 }
 
+CoilTable read_coil_table(const std::string& path) {
+  CsvTable t = CsvTable::read(path);
+  t.require_columns({"r_mm", "b_shape"});
+  const size_t cr = t.column("r_mm"), cs = t.column("b_shape");
+  CoilTable out;
+  for (size_t i = 0; i < t.rows(); ++i) {
+    out.r_mm.push_back(t.number(i, cr));
+    out.shape.push_back(t.number(i, cs));
+    if (i > 0 && !(out.r_mm[i] > out.r_mm[i - 1])) throw data_error(t.name(), t.line(i), "r_mm must increase strictly");
+  }
+  if (out.r_mm.size() < 2) throw data_error(t.name(), 0, "a trim coil table needs at least 2 rows");
+  return out;
+}
+
 TrimCoilField::TrimCoilField(const TrimCoil& coil, int symmetry) : coil_(coil), symmetry_(symmetry) {
   const std::string where = "trim coil '" + coil.name + "'";
   if (coil.type == "psi-bfield") kind_ = 0;
@@ -72,16 +86,9 @@ TrimCoilField::TrimCoilField(const TrimCoil& coil, int symmetry) : coil_(coil), 
       if (i > 0 && !(tr_[i] > tr_[i - 1])) throw Error(ExitCode::software, where + ": table radii must increase");
     }
   } else if (kind_ == 3) {
-    CsvTable t = CsvTable::read(coil.table);
-    t.require_columns({"r_mm", "b_shape"});
-    const size_t cr = t.column("r_mm"), cs = t.column("b_shape");
-    for (size_t i = 0; i < t.rows(); ++i) {
-      tr_.push_back(t.number(i, cr) * 1e-3);
-      ts_.push_back(t.number(i, cs));
-      if (i > 0 && !(tr_[i] > tr_[i - 1]))
-        throw data_error(t.name(), t.line(i), "r_mm must increase strictly");
-    }
-    if (tr_.size() < 2) throw data_error(t.name(), 0, "a trim coil table needs at least 2 rows");
+    const CoilTable t = read_coil_table(coil.table);
+    for (double r : t.r_mm) tr_.push_back(r * 1e-3);
+    ts_ = t.shape;
   }
   if (kind_ == 3) {
     // Monotone-preserving (Fritsch-Carlson) slopes: no overshoot between measured points.

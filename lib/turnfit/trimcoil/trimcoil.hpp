@@ -9,6 +9,16 @@
 
 namespace turnfit {
 
+/// A trim coil's table (type table): radii [mm], strictly increasing, and shape values.
+struct CoilTable {
+  std::vector<double> r_mm;
+  std::vector<double> shape;
+};
+
+/// Reads a trim coil table file (CSV r_mm,b_shape; EX_NOINPUT / EX_DATAERR naming the file and
+/// line: radii not strictly increasing, fewer than 2 rows).
+CoilTable read_coil_table(const std::string& path);
+
 /// A trim coil's contribution to the bending field b (turnfit's convention: b > 0 bends the
 /// particle; a positive bmax_T strengthens the field for every type).
 ///
