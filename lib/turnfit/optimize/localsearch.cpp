@@ -16,7 +16,7 @@
 
 namespace turnfit {
 
-FitSummary summarize(const TurnPatternProblem& p, const TurnPatternResult& r, const std::vector<double>& sigma_mm) {
+FitSummary summarize(const TurnPatternResult& r, const std::vector<double>& sigma_mm) {
   FitSummary f;
   f.ok = r.ok;
   f.reason = r.reason;
@@ -34,7 +34,6 @@ FitSummary summarize(const TurnPatternProblem& p, const TurnPatternResult& r, co
   f.linf_mm = st.linf_mm;
   f.mae_mm = st.mae_mm;
   f.rms_mm = st.rms_mm;
-  (void)p;
   return f;
 }
 
@@ -84,10 +83,10 @@ struct Residuals {
     }
   }
 
-  /// Residuals at u and the Jacobian d r / d u (row-major nres x n), its columns evaluated in
-  /// parallel. A forward step that would leave [0, 1] goes backward instead (and a central
+  /// Residuals at u into res, and the Jacobian d r / d u (kept in `jac`, with `jac_u` and
+  /// `jac_res`), its columns evaluated in parallel. A forward step that would leave [0, 1] goes backward instead (and a central
   /// difference becomes one-sided there).
-  void fill_with_jacobian(const double* u, double* res, double* jac_rowmajor) const {
+  void fill_with_jacobian(const double* u, double* res) const {
     const size_t ncols = central ? 2 * n : n;
     std::vector<std::vector<double>> out(ncols + 1, std::vector<double>(nres));
     std::vector<double> step(n);
@@ -108,9 +107,6 @@ struct Residuals {
       for (size_t i = 0; i < nres; ++i)
         J(i, j) = two ? (out[1 + j][i] - out[1 + n + j][i]) / (2 * step[j]) : (out[1 + j][i] - out[0][i]) / step[j];
     }
-    if (jac_rowmajor)
-      for (size_t i = 0; i < nres; ++i)
-        for (size_t j = 0; j < n; ++j) jac_rowmajor[i * n + j] = J(i, j);
     std::lock_guard<std::mutex> lock(mu);
     jac_u.assign(u, u + n);
     jac_res = out[0];
@@ -142,7 +138,7 @@ class TurnCost final : public ceres::CostFunction {
       }
     }
     if (!cached) {
-      if (want) r_.fill_with_jacobian(u.data(), res, nullptr);
+      if (want) r_.fill_with_jacobian(u.data(), res);
       else r_.fill(u.data(), res);
     }
     if (want) {
@@ -240,9 +236,14 @@ LocalSearchResult local_search(const TurnPatternProblem& p, const std::vector<do
     }
   }
 
-  const TurnPatternResult start = p.simulate(x0);
+  size_t own_evaluations = 0;  // designs simulated here, outside the fit's residuals
+  auto simulate = [&](const std::vector<double>& x) {
+    ++own_evaluations;
+    return p.simulate(x);
+  };
+  const TurnPatternResult start = simulate(x0);
   if (!start.ok) throw Error(ExitCode::data, p.file() + ": the start cannot be simulated: " + start.reason);
-  out.before = summarize(p, start, sigma);
+  out.before = summarize(start, sigma);
   if (out.before.matched == 0)
     throw Error(ExitCode::data, p.file() + ": the start reaches no measured turn (" + start.end.status + ")");
 
@@ -278,7 +279,7 @@ LocalSearchResult local_search(const TurnPatternProblem& p, const std::vector<do
   out.sigma_probes = meas.probes;
   if (estimate) {
     // chi2 per degree of freedom 1 per probe: sigma_p^2 = sum dr^2 / (N_p - n N_p / N).
-    const TurnPatternResult r1 = p.simulate(res.x_of(u.data()));
+    const TurnPatternResult r1 = simulate(res.x_of(u.data()));
     size_t nmatched = 0;
     for (size_t i = 0; i < nmeas; ++i) nmatched += r1.ok && r1.matched[i];
     for (size_t q = 0; q < meas.probes.size(); ++q) {
@@ -306,9 +307,9 @@ LocalSearchResult local_search(const TurnPatternProblem& p, const std::vector<do
   }
   out.termination = ceres::TerminationTypeToString(sum.termination_type);
   out.x = res.x_of(u.data());
-  const TurnPatternResult fin = p.simulate(out.x);
-  out.after = summarize(p, fin, sigma);
-  out.before = summarize(p, start, sigma);  // chi2 with the final sigma, comparable with after's
+  const TurnPatternResult fin = simulate(out.x);
+  out.after = summarize(fin, sigma);
+  out.before = summarize(start, sigma);  // chi2 with the final sigma, comparable with after's
   const double dof = static_cast<double>(out.after.matched) - static_cast<double>(n);
   out.chi2_dof = dof > 0 ? out.after.chi2 / dof : std::nan("");
 
@@ -320,7 +321,7 @@ LocalSearchResult local_search(const TurnPatternProblem& p, const std::vector<do
   }
   if (J.size() == 0) {
     std::vector<double> r0(res.nres);
-    res.fill_with_jacobian(u.data(), r0.data(), nullptr);
+    res.fill_with_jacobian(u.data(), r0.data());
     std::lock_guard<std::mutex> lock(res.mu);
     J = res.jac;
   }
@@ -390,7 +391,7 @@ LocalSearchResult local_search(const TurnPatternProblem& p, const std::vector<do
         out.identifiability.push_back(p.variables()[j].name + " and " + p.variables()[k].name + ": " +
                                       fmt(out.correlation(j, k), 3) + " correlated");
 
-  out.evaluations = res.evaluations + 2;  // the start and the result, simulated above
+  out.evaluations = res.evaluations + own_evaluations;
   out.failed_evaluations = res.failed;
   out.wall_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - wall0).count();
   out.cpu_s = static_cast<double>(std::clock() - cpu0) / CLOCKS_PER_SEC;

@@ -74,7 +74,7 @@ struct LocalSearchResult {
 };
 
 /// Summarizes one design against the measurement (sigma per measured point for chi2).
-FitSummary summarize(const TurnPatternProblem& p, const TurnPatternResult& r, const std::vector<double>& sigma_mm);
+FitSummary summarize(const TurnPatternResult& r, const std::vector<double>& sigma_mm);
 
 /// Fits the problem's variables from x0 by bounded Levenberg-Marquardt on the residuals
 /// (model - measured) / sigma of every measured turn, with the problem's priors and the weak
