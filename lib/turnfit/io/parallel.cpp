@@ -32,9 +32,8 @@ void run_workers(unsigned threads, const std::function<void(unsigned worker)>& w
   try {
     for (unsigned w = 1; w < threads; ++w) pool.emplace_back(guarded, w);
   } catch (...) {
-    // Could not start a thread (resource limits): the workers started so far and this one
-    // still do all the work, since work takes indices from a shared counter or is per worker.
-    // Only a worker-partitioned job would lose its part, so report it instead.
+    // Could not start a thread (resource limits): let the started ones finish, then report it
+    // (a job split by worker index would otherwise lose the missing workers' part).
     for (auto& t : pool) t.join();
     throw;
   }

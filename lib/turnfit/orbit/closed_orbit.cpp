@@ -265,7 +265,7 @@ std::vector<OrbitRow> orbit_table(const PolarFieldMap& map, const OrbitSettings&
   constexpr size_t kChunk = 32;  // fixed, so results do not depend on the thread count
   const size_t chunks = (n + kChunk - 1) / kChunk;
   std::atomic<size_t> done{0};
-  parallel_for(chunks, std::max(1u, threads), [&](size_t c, unsigned) {
+  parallel_for(chunks, threads, [&](size_t c, unsigned) {
     std::optional<std::pair<double, double>> guess;
     const OrbitRow* prev = nullptr;
     const OrbitRow* prev2 = nullptr;

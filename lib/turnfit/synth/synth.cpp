@@ -283,7 +283,7 @@ std::vector<std::vector<double>> phase_response(const Machine& m, const std::vec
   phase_history(m, base, st, r0, p0);
   const std::vector<double> s0 = sines(p0);
   std::vector<std::vector<double>> out(fields.size());
-  parallel_for(fields.size(), std::max(1u, threads), [&](size_t k, unsigned) {
+  parallel_for(fields.size(), threads, [&](size_t k, unsigned) {
     std::vector<double> r1, p1;
     history_with(m, base, fields[k], base.coils.size(), st, r1, p1);
     const std::vector<double> s1 = sines(p1);
