@@ -1,5 +1,7 @@
 // Field maps: spline exactness and continuity, symmetry, readers, writers and their errors.
 #include <catch2/catch.hpp>
+
+#include <functional>
 #include <cmath>
 #include <sstream>
 
@@ -84,36 +86,41 @@ TEST_CASE("field: Bz and both derivatives are continuous across cell boundaries"
   auto jump_bound = [&](double d_left, double d_right, double floor) {
     return 1.1 * 2 * eps * std::max(std::fabs(d_left), std::fabs(d_right)) + floor;
   };
+  // Continuity across one grid line: at(s) samples the map a signed distance s across it, and
+  // `radial` says which slope is the one normal to the line (it bounds the value's jump).
+  auto across = [&](const std::function<FieldSample(double)>& at, bool radial) {
+    const FieldSample a = at(-eps), b = at(eps), a2 = at(-eps - delta), b2 = at(eps + delta);
+    CHECK(a.bz_T == Approx(b.bz_T).epsilon(0).margin(
+                        jump_bound(radial ? a.dbz_dr_T_m : a.dbz_dth_T, radial ? b.dbz_dr_T_m : b.dbz_dth_T, 1e-14)));
+    const double dr_l = (a.dbz_dr_T_m - a2.dbz_dr_T_m) / delta, dr_r = (b2.dbz_dr_T_m - b.dbz_dr_T_m) / delta;
+    const double dt_l = (a.dbz_dth_T - a2.dbz_dth_T) / delta, dt_r = (b2.dbz_dth_T - b.dbz_dth_T) / delta;
+    CHECK(a.dbz_dr_T_m == Approx(b.dbz_dr_T_m).epsilon(0).margin(jump_bound(dr_l, dr_r, 1e-10)));
+    CHECK(a.dbz_dth_T == Approx(b.dbz_dth_T).epsilon(0).margin(jump_bound(dt_l, dt_r, 1e-10)));
+  };
   for (int i = 1; i < g.nr - 1; ++i) {  // radial grid lines
     const double r = g.r_min_m() + i * g.dr_m();
     for (double th : {0.1, 0.7, 1.3}) {
-      FieldSample a, b, a2, b2;
-      REQUIRE(map.sample(r - eps, th, a));
-      REQUIRE(map.sample(r + eps, th, b));
-      REQUIRE(map.sample(r - eps - delta, th, a2));
-      REQUIRE(map.sample(r + eps + delta, th, b2));
       INFO("r = " << r << ", theta = " << th);
-      CHECK(a.bz_T == Approx(b.bz_T).epsilon(0).margin(jump_bound(a.dbz_dr_T_m, b.dbz_dr_T_m, 1e-14)));
-      const double drr_l = (a.dbz_dr_T_m - a2.dbz_dr_T_m) / delta, drr_r = (b2.dbz_dr_T_m - b.dbz_dr_T_m) / delta;
-      const double drt_l = (a.dbz_dth_T - a2.dbz_dth_T) / delta, drt_r = (b2.dbz_dth_T - b.dbz_dth_T) / delta;
-      CHECK(a.dbz_dr_T_m == Approx(b.dbz_dr_T_m).epsilon(0).margin(jump_bound(drr_l, drr_r, 1e-10)));
-      CHECK(a.dbz_dth_T == Approx(b.dbz_dth_T).epsilon(0).margin(jump_bound(drt_l, drt_r, 1e-10)));
+      across(
+          [&](double s) {
+            FieldSample f;
+            REQUIRE(map.sample(r + s, th, f));
+            return f;
+          },
+          true);
     }
   }
   for (int j = 0; j < g.ntheta; ++j) {  // azimuthal grid lines, including the periodic seam
     const double th = j * g.dtheta_rad();
     for (double r : {0.61, 0.93}) {
-      FieldSample a, b, a2, b2;
-      REQUIRE(map.sample(r, th - eps, a));
-      REQUIRE(map.sample(r, th + eps, b));
-      REQUIRE(map.sample(r, th - eps - delta, a2));
-      REQUIRE(map.sample(r, th + eps + delta, b2));
       INFO("r = " << r << ", theta = " << th);
-      CHECK(a.bz_T == Approx(b.bz_T).epsilon(0).margin(jump_bound(a.dbz_dth_T, b.dbz_dth_T, 1e-14)));
-      const double dtr_l = (a.dbz_dr_T_m - a2.dbz_dr_T_m) / delta, dtr_r = (b2.dbz_dr_T_m - b.dbz_dr_T_m) / delta;
-      const double dtt_l = (a.dbz_dth_T - a2.dbz_dth_T) / delta, dtt_r = (b2.dbz_dth_T - b.dbz_dth_T) / delta;
-      CHECK(a.dbz_dr_T_m == Approx(b.dbz_dr_T_m).epsilon(0).margin(jump_bound(dtr_l, dtr_r, 1e-10)));
-      CHECK(a.dbz_dth_T == Approx(b.dbz_dth_T).epsilon(0).margin(jump_bound(dtt_l, dtt_r, 1e-10)));
+      across(
+          [&](double s) {
+            FieldSample f;
+            REQUIRE(map.sample(r, th + s, f));
+            return f;
+          },
+          false);
     }
   }
 }
