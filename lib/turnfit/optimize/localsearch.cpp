@@ -332,10 +332,10 @@ LocalSearchResult local_search(const TurnPatternProblem& p, const std::vector<do
   Eigen::MatrixXd cov = Eigen::MatrixXd::Zero(n, n);
   for (Eigen::Index k = 0; k < sf.size(); ++k)
     if (sf(k) > sf(0) * 1e-12) cov += svd_full.matrixV().col(k) * svd_full.matrixV().col(k).transpose() / (sf(k) * sf(k));
-  // The data alone with only the weak prior (one range): what the turns determine.
-  const double w = s.weak_prior_range > 0 ? s.weak_prior_range : 1.0;
-  const Eigen::MatrixXd cov_data =
-      (Jd.transpose() * Jd + Eigen::MatrixXd::Identity(n, n) / (w * w)).inverse();
+  // What the turns determine: the data with a reference prior of one whole bound range (not
+  // the fit's weak prior: with --weak-prior 0.1 that prior alone would pass the tenth-of-a-range
+  // test for every variable).
+  const Eigen::MatrixXd cov_data = (Jd.transpose() * Jd + Eigen::MatrixXd::Identity(n, n)).inverse();
   out.correlation = Eigen::MatrixXd::Zero(n, n);
   for (size_t j = 0; j < n; ++j) {
     FittedVariable v;
