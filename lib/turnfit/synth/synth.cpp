@@ -139,6 +139,7 @@ void history_with(const Machine& m, const TrackModel& base, const TrimCoil& coil
   if (!base.opal_map) f.tabulate(base.map.grid().r_min_m(), base.map.grid().r_max_m());
   if (slot < exc.coils.size()) exc.coils[slot] = std::move(f);
   else exc.coils.push_back(std::move(f));
+  exc.sum_coils(!base.opal_map);
   phase_history(m, exc, st, r, psi);
 }
 

@@ -121,10 +121,31 @@ bool TrackModel::field(double r_m, double th, FieldSample& out) const {
   const FieldSample main = out;
   double dc = 0;
   const double centre = sector_windows ? sector_centre(r_m, dc) : 0.0;
-  for (const auto& c : coils)
-    c.add(r_m, th, main.bz_T, main.dbz_dr_T_m, main.dbz_dth_T, threshold_T, out.bz_T, out.dbz_dr_T_m, out.dbz_dth_T,
-          centre);
+  add_coils(r_m, th, main, centre, out);
   return true;
+}
+
+void TrackModel::add_coils(double r_m, double th, const FieldSample& main, double centre, FieldSample& out) const {
+  if (summed_for_ != coils.size()) {  // coils added since sum_coils(), or a model built by hand
+    for (const auto& c : coils)
+      c.add(r_m, th, main.bz_T, main.dbz_dr_T_m, main.dbz_dth_T, threshold_T, out.bz_T, out.dbz_dr_T_m, out.dbz_dth_T,
+            centre);
+    return;
+  }
+  if (!coil_sum.empty())
+    coil_sum.add(r_m, main.bz_T, main.dbz_dr_T_m, main.dbz_dth_T, threshold_T, out.bz_T, out.dbz_dr_T_m, out.dbz_dth_T);
+  for (size_t i : single_coils)
+    coils[i].add(r_m, th, main.bz_T, main.dbz_dr_T_m, main.dbz_dth_T, threshold_T, out.bz_T, out.dbz_dr_T_m,
+                 out.dbz_dth_T, centre);
+}
+
+void TrackModel::sum_coils(bool sum) {
+  std::vector<char> taken(coils.size(), 0);
+  coil_sum = sum ? TrimCoilSum(coils, map.grid().r_min_m(), map.grid().r_max_m(), taken) : TrimCoilSum();
+  single_coils.clear();
+  for (size_t i = 0; i < coils.size(); ++i)  // a coil at bmax 0 adds nothing
+    if (!taken[i] && coils[i].coil().bmax_T != 0) single_coils.push_back(i);
+  summed_for_ = coils.size();
 }
 
 bool TrackModel::field_with_effects(double r_m, double th, FieldSample& out) const {
@@ -142,9 +163,7 @@ bool TrackModel::field_with_effects(double r_m, double th, FieldSample& out) con
     out.bz_T *= f;
   }
   const FieldSample main = out;
-  for (const auto& c : coils)
-    c.add(r_m, th, main.bz_T, main.dbz_dr_T_m, main.dbz_dth_T, threshold_T, out.bz_T, out.dbz_dr_T_m, out.dbz_dth_T,
-          centre);
+  add_coils(r_m, th, main, centre, out);
   for (const auto& h : effects.harmonics) {
     const double dr = r_m - h.r0_m;
     const double g = h.inv_width2 == 0 ? 1.0 : std::exp(-0.5 * dr * dr * h.inv_width2);
@@ -270,6 +289,22 @@ bool same_main_field(const ModelFiles& f, const Machine& m) {
          f.map_scale == m.field.scale;
 }
 
+/// A trim coil's field; a table coil from the files' copy of its table when they hold it.
+TrimCoilField make_coil(const TrimCoil& c, const PolarFieldMap& map, const ModelFiles* files) {
+  const int sym = map.grid().symmetry;
+  if (files && c.type == "table" && !c.table.empty()) {
+    auto it = files->coil_tables.find(c.table);
+    if (it != files->coil_tables.end()) {
+      TrimCoil mem = c;  // the table as read, in memory (same rows, same monotone slopes)
+      mem.table.clear();
+      mem.table_r_mm = it->second.r_mm;
+      mem.table_shape = it->second.shape;
+      return TrimCoilField(mem, sym);
+    }
+  }
+  return TrimCoilField(c, sym);
+}
+
 }  // namespace
 
 ModelFiles read_model_files(const Machine& m) {
@@ -284,6 +319,10 @@ ModelFiles read_model_files(const Machine& m) {
   for (const auto& c : m.trimcoils)
     if (c.type == "table" && !c.table.empty() && !f.coil_tables.count(c.table))
       f.coil_tables.emplace(c.table, read_coil_table(c.table));
+  for (const auto& c : m.trimcoils) {
+    f.coils.push_back(make_coil(c, *f.map, &f));
+    f.coils.back().tabulate(f.map->grid().r_min_m(), f.map->grid().r_max_m());
+  }
   return f;
 }
 
@@ -291,22 +330,16 @@ TrackModel make_track_model(const Machine& m, const ModelOptions& opt, const Mod
   TrackModel t;
   t.map = files && same_main_field(*files, m) ? *files->map : load_main_field(m);
   if (opt.opal_map) t.opal_map.emplace(t.map);
-  const int sym = t.map.grid().symmetry;
-  for (const auto& c : m.trimcoils) {
-    const CoilTable* table = nullptr;
-    if (files && c.type == "table" && !c.table.empty()) {
-      auto it = files->coil_tables.find(c.table);
-      if (it != files->coil_tables.end()) table = &it->second;
+  for (size_t i = 0; i < m.trimcoils.size(); ++i) {
+    const TrimCoil& c = m.trimcoils[i];
+    // A coil the files hold already tabulated (same shape; only bmax may differ), over the same map.
+    if (files && !opt.opal_map && i < files->coils.size() && same_shape(files->coils[i].coil(), c) &&
+        same_main_field(*files, m)) {
+      t.coils.push_back(files->coils[i]);
+      t.coils.back().set_bmax(c.bmax_T);
+      continue;
     }
-    if (table) {
-      TrimCoil mem = c;  // the table as read, in memory (same rows, same monotone slopes)
-      mem.table.clear();
-      mem.table_r_mm = table->r_mm;
-      mem.table_shape = table->shape;
-      t.coils.emplace_back(mem, sym);
-    } else {
-      t.coils.emplace_back(c, sym);
-    }
+    t.coils.push_back(make_coil(c, t.map, files));
     // Lookup tables to 1e-7 of each coil's peak (1.4e-10 T for the PSI TC15), five orders
     // below the map's own precision, instead of exponentials at every field sample. The
     // OPAL-compatible model keeps OPAL's formula.
@@ -337,6 +370,7 @@ TrackModel make_track_model(const Machine& m, const ModelOptions& opt, const Mod
   // A harmonic analysis of the whole map: only for models whose windows use it (an optimizer
   // builds a model per evaluation).
   if (t.sector_windows) fit_sector_centre(t);
+  t.sum_coils(opt.sum_coils && !opt.opal_map);
   return t;
 }
 

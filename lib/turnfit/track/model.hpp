@@ -73,6 +73,15 @@ struct TrackModel {
   std::optional<OpalBilinearMap> opal_map;
   std::vector<TrimCoilField> coils;  ///< trim coils
   double threshold_T = 0;            ///< trim coil threshold
+  /// The coils that act at every azimuth, summed into one table, and the indices of the
+  /// others with a nonzero bmax (evaluated one by one). Built by sum_coils() (make_track_model
+  /// calls it); field() uses them while `coils` keeps the size they were built for, and every
+  /// coil one by one otherwise (a model built by hand, or coils added later).
+  TrimCoilSum coil_sum;
+  std::vector<size_t> single_coils;
+  /// (Re)builds coil_sum and single_coils from `coils`: call it after changing a coil in place.
+  /// With sum = false every coil stays single (OPAL's compatible model keeps its formulas).
+  void sum_coils(bool sum = true);
   std::vector<Gap> gaps;
   std::vector<ProbeLine> probes;
   double mass_MeV = 938.27208816;
@@ -96,6 +105,9 @@ struct TrackModel {
 
  private:
   bool field_with_effects(double r_m, double theta_rad, FieldSample& out) const;
+  void add_coils(double r_m, double theta_rad, const FieldSample& main, double sector_centre_rad,
+                 FieldSample& out) const;
+  size_t summed_for_ = static_cast<size_t>(-1);  // coils.size() when sum_coils() ran
 };
 
 /// Fits TrackModel::sector_centre_coef to a map: per radius the phase of the N-th azimuthal
@@ -108,6 +120,9 @@ struct ModelOptions {
   /// OPAL-cycl 2022.1's field: bilinear interpolation in (r, theta) of Bz, with dBz/dr and
   /// dBz/dtheta from 5-point stencils (one-sided at the edges), instead of the bicubic spline.
   bool opal_map = false;
+  /// Sum the coils that act at every azimuth into one table (TrimCoilSum); off: one by one
+  /// (for comparisons; the OPAL-compatible model never sums).
+  bool sum_coils = true;
 };
 
 /// What make_track_model reads from disk, read once: an optimizer builds a model per design,
@@ -121,6 +136,9 @@ struct ModelFiles {
   double map_scale = 1;
   std::map<std::string, VoltageProfile> profiles;  ///< cavity profiles by resolved path
   std::map<std::string, CoilTable> coil_tables;  ///< trim coil tables (type table) by resolved path
+  /// The machine's trim coils as built and tabulated over the map (their shapes do not depend
+  /// on bmax, which a design changes): a model takes a copy instead of tabulating again.
+  std::vector<TrimCoilField> coils;
 };
 
 /// Reads every file the machine's model needs (EX_NOINPUT / EX_DATAERR naming the file).

@@ -20,6 +20,22 @@ void poly(const std::vector<double>& c, double x, double& p, double& dp, double&
     p = p * x + c[i];
   }
 }
+/// Adds a coil field c(r) (dc/dr) to b and its derivatives. Below the threshold the coil
+/// fades linearly with the main field (OPAL's smooth transition).
+void add_faded(double c, double dc_dr, double main_b, double main_db_dr, double main_db_dth, double threshold_T,
+               double& b, double& db_dr, double& db_dth) {
+  double w = 1, dw_dr = 0, dw_dth = 0;
+  const double amain = std::fabs(main_b);
+  if (threshold_T > 0 && amain < threshold_T) {
+    w = amain / threshold_T;
+    const double sg = main_b >= 0 ? 1.0 : -1.0;
+    dw_dr = sg * main_db_dr / threshold_T;
+    dw_dth = sg * main_db_dth / threshold_T;
+  }
+  b += c * w;
+  db_dr += dc_dr * w + c * dw_dr;
+  db_dth += c * dw_dth;
+}
 /// Coefficients of p(c + y) in y, accumulated in long double.
 std::vector<double> shifted(const std::vector<double>& a, double c) {
   const std::vector<long double> b = taylor_shift(std::vector<long double>(a.begin(), a.end()), c);
@@ -220,6 +236,14 @@ void TrimCoilField::shape_exact(double r_m, double& s, double& ds) const {
   }
 }
 
+bool same_shape(const TrimCoil& a, const TrimCoil& b) {
+  return a.name == b.name && a.type == b.type && a.rmin_mm == b.rmin_mm && a.rmax_mm == b.rmax_mm &&
+         a.coefnum == b.coefnum && a.coefdenom == b.coefdenom && a.slope_per_mm == b.slope_per_mm &&
+         a.table == b.table && a.sectors == b.sectors && a.phimin_deg == b.phimin_deg && a.phimax_deg == b.phimax_deg &&
+         a.coef_origin_mm == b.coef_origin_mm && a.table_r_mm == b.table_r_mm && a.table_shape == b.table_shape &&
+         a.table_slope == b.table_slope;
+}
+
 TrimCoil bfield_from_phase(const TrimCoil& phase) {
   if (phase.type != "psi-phase")
     throw Error(ExitCode::usage, "trim coil '" + phase.name + "': bfield_from_phase needs a psi-phase coil");
@@ -277,19 +301,105 @@ void TrimCoilField::add(double r_m, double th, double main_b, double main_db_dr,
   double s, ds;
   shape(r_m, s, ds);
   if ((s == 0 && ds == 0) || !in_azimuth(th, sector_offset)) return;
-  // Below the threshold the coil fades linearly with the main field (OPAL's smooth transition).
-  double w = 1, dw_dr = 0, dw_dth = 0;
-  const double amain = std::fabs(main_b);
-  if (threshold_T > 0 && amain < threshold_T) {
-    w = amain / threshold_T;
-    const double sg = main_b >= 0 ? 1.0 : -1.0;
-    dw_dr = sg * main_db_dr / threshold_T;
-    dw_dth = sg * main_db_dth / threshold_T;
+  add_faded(coil_.bmax_T * s, coil_.bmax_T * ds, main_b, main_db_dr, main_db_dth, threshold_T, b, db_dr, db_dth);
+}
+
+TrimCoilSum::TrimCoilSum(const std::vector<TrimCoilField>& coils, double r_lo, double r_hi, std::vector<char>& taken) {
+  taken.assign(coils.size(), 0);
+  std::vector<size_t> use;
+  for (size_t i = 0; i < coils.size(); ++i) {
+    const TrimCoilField& c = coils[i];
+    if (c.everywhere_ && c.coil_.bmax_T != 0 && c.kind_ != 3 && !c.lut_.empty()) use.push_back(i);
   }
-  const double bm = coil_.bmax_T;
-  b += bm * s * w;
-  db_dr += bm * (ds * w + s * dw_dr);
-  db_dth += bm * s * dw_dth;
+  if (use.size() < 2 || !(r_hi > r_lo)) return;
+  // Breaks: every table segment's ends (support edges, mirrored kinks), within [r_lo, r_hi].
+  std::vector<double> cuts = {r_lo, r_hi};
+  for (size_t i : use)
+    for (const auto& g : coils[i].lut_) {
+      const double e = g.r0 + static_cast<double>(g.s.size() - 1) * g.h;
+      for (double r : {g.r0, e})
+        if (r > r_lo && r < r_hi) cuts.push_back(r);
+    }
+  std::sort(cuts.begin(), cuts.end());
+  cuts.erase(std::unique(cuts.begin(), cuts.end(), [](double a, double b) { return b - a <= 1e-12; }), cuts.end());
+  for (size_t k = 0; k + 1 < cuts.size(); ++k) {
+    const double a = cuts[k], b = cuts[k + 1];
+    // The finest spacing any coil's table uses on this piece.
+    double h = b - a;
+    bool any = false;
+    for (size_t i : use)
+      for (const auto& g : coils[i].lut_) {
+        const double e = g.r0 + static_cast<double>(g.s.size() - 1) * g.h;
+        if (g.r0 < b && e > a) {
+          h = std::min(h, g.h);
+          any = true;
+        }
+      }
+    if (!any) continue;  // no coil's table here: every summed coil is 0 (outside its support)
+    Piece p;
+    const size_t n = static_cast<size_t>(std::ceil((b - a) / h - 1e-9)) + 1;
+    p.r0 = a;
+    p.r1 = b;
+    p.h = (b - a) / static_cast<double>(std::max<size_t>(n - 1, 1));
+    p.inv_h = 1 / p.h;
+    p.s.assign(std::max<size_t>(n, 2), 0.0);
+    p.ds.assign(p.s.size(), 0.0);
+    // One-sided values of this piece at its ends (a coil's edge may be one of them).
+    const double eps = 1e-12 * (b - a);
+    for (size_t j = 0; j < p.s.size(); ++j) {
+      const double r = std::min(std::max(a + static_cast<double>(j) * p.h, a + eps), b - eps);
+      for (size_t i : use) {
+        double v, d;
+        coils[i].shape_exact(r, v, d);
+        p.s[j] += coils[i].coil_.bmax_T * v;
+        p.ds[j] += coils[i].coil_.bmax_T * d;
+      }
+    }
+    pieces_.push_back(std::move(p));
+  }
+  if (pieces_.empty()) return;
+  for (size_t i : use) taken[i] = 1;
+  ncoils_ = use.size();
+  // Buckets of the finest piece's width (at most 4096) point at the first piece a radius can be in.
+  lo_ = pieces_.front().r0;
+  const double span = pieces_.back().r1 - lo_;
+  const size_t nb = std::min<size_t>(4096, static_cast<size_t>(pieces_.size()) * 8 + 1);
+  inv_bucket_ = static_cast<double>(nb) / span;
+  bucket_.assign(nb + 1, 0);
+  size_t q = 0;
+  for (size_t b = 0; b <= nb; ++b) {
+    const double r = lo_ + static_cast<double>(b) / inv_bucket_;
+    while (q + 1 < pieces_.size() && pieces_[q].r1 <= r) ++q;
+    bucket_[b] = static_cast<unsigned>(q);
+  }
+}
+
+size_t TrimCoilSum::nodes() const {
+  size_t n = 0;
+  for (const auto& p : pieces_) n += p.s.size();
+  return n;
+}
+
+void TrimCoilSum::value(double r, double& b, double& db) const {
+  b = db = 0;
+  if (pieces_.empty()) return;
+  const double x = (r - lo_) * inv_bucket_;
+  if (!(x >= 0 && x < static_cast<double>(bucket_.size()))) return;
+  size_t q = bucket_[static_cast<size_t>(x)];
+  while (q < pieces_.size() && pieces_[q].r1 < r) ++q;
+  if (q == pieces_.size() || r < pieces_[q].r0) return;  // past the end, or a gap no coil covers
+  const Piece& p = pieces_[q];
+  const double t = (r - p.r0) * p.inv_h;
+  const size_t i = std::min(static_cast<size_t>(t), p.s.size() - 2);
+  b = hermite(p.s[i], p.s[i + 1], p.ds[i], p.ds[i + 1], p.h, t - static_cast<double>(i), db);
+}
+
+void TrimCoilSum::add(double r_m, double main_b, double main_db_dr, double main_db_dth, double threshold_T, double& b,
+                      double& db_dr, double& db_dth) const {
+  double s, ds;
+  value(r_m, s, ds);
+  if (s == 0 && ds == 0) return;
+  add_faded(s, ds, main_b, main_db_dr, main_db_dth, threshold_T, b, db_dr, db_dth);
 }
 
 }  // namespace turnfit

@@ -1,0 +1,126 @@
+// bench_evaluation: what one design of a turn-pattern problem costs (issues 15 and 17), and where
+// the time goes: ring8 with its 18 trim coils excited (truth-dvars.json's design), 182 turns,
+// on one thread. Model build and track separately, with the coils summed into one table
+// (TrimCoilSum, the default) and one by one (the reference, same process), and the turns of the
+// two compared. Then the whole in-process evaluation (TurnPatternProblem::simulate: model,
+// track, match, objectives) against the shipped measurement.
+//
+// Usage: bench_evaluation [--repeat 20]
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <cstdlib>
+#include <cstring>
+#include <filesystem>
+#include <fstream>
+#include <unistd.h>
+#include <string>
+#include <vector>
+
+#include "turnfit/machine/machine.hpp"
+#include "turnfit/optimize/problem_file.hpp"
+#include "turnfit/optimize/turn_problem.hpp"
+#include "turnfit/physics/particle.hpp"
+#include "turnfit/track/model.hpp"
+#include "turnfit/track/tracker.hpp"
+
+using namespace turnfit;
+using Clock = std::chrono::steady_clock;
+
+namespace {
+
+std::string share(const std::string& f) { return std::string(TURNFIT_SOURCE_SHARE) + "/ring8/" + f; }
+
+double seconds(Clock::time_point a) { return std::chrono::duration<double>(Clock::now() - a).count(); }
+
+struct Timing {
+  double build_ms = 0, track_ms = 0;
+  std::vector<TurnRecord> turns;
+};
+
+Timing time_track(const Machine& m, const ModelFiles& files, bool sum, int repeat) {
+  ModelOptions opt;
+  opt.sum_coils = sum;
+  Timing t;
+  const ParticleState s0 = injection_state(effective_injection(m), m.particle.mass_MeV);
+  const TrackSettings st = machine_track_settings(m);
+  std::vector<double> build, track;
+  for (int k = 0; k < repeat; ++k) {
+    auto a = Clock::now();
+    const TrackModel model = make_track_model(m, opt, &files);
+    build.push_back(seconds(a) * 1e3);
+    a = Clock::now();
+    t.turns.clear();
+    track_particle(model, s0, st, t.turns);
+    track.push_back(seconds(a) * 1e3);
+  }
+  // Medians: robust against another process taking a core for a moment.
+  std::sort(build.begin(), build.end());
+  std::sort(track.begin(), track.end());
+  t.build_ms = build[build.size() / 2];
+  t.track_ms = track[track.size() / 2];
+  return t;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  int repeat = 20;
+  for (int i = 1; i < argc; ++i) {
+    if (!std::strcmp(argv[i], "--repeat") && i + 1 < argc) repeat = std::max(1, std::atoi(argv[++i]));
+    else {
+      std::fprintf(stderr, "usage: bench_evaluation [--repeat N]\n");
+      return 64;
+    }
+  }
+  Machine m = load_machine(share("machine.json"));
+  apply_dvars_file(m, share("truth-dvars.json"));
+  const ModelFiles files = read_model_files(m);
+  size_t excited = 0;
+  for (const auto& c : m.trimcoils) excited += c.bmax_T != 0;
+  std::printf("ring8, truth-dvars.json's design (%zu of %zu trim coils excited), 182 turns, one thread, medians of %d\n",
+              excited, m.trimcoils.size(), repeat);
+  const Timing one = time_track(m, files, false, repeat);
+  const Timing sum = time_track(m, files, true, repeat);
+  double worst = 0;
+  bool same = one.turns.size() == sum.turns.size();
+  for (size_t i = 0; same && i < one.turns.size(); ++i) worst = std::max(worst, std::fabs(one.turns[i].r_mm - sum.turns[i].r_mm));
+  std::printf("%-26s %10s %10s %10s\n", "coils", "build [ms]", "track [ms]", "total [ms]");
+  std::printf("%-26s %10.2f %10.2f %10.2f\n", "one by one (reference)", one.build_ms, one.track_ms, one.build_ms + one.track_ms);
+  std::printf("%-26s %10.2f %10.2f %10.2f\n", "summed (TrimCoilSum)", sum.build_ms, sum.track_ms, sum.build_ms + sum.track_ms);
+  std::printf("speed-up of the track: %.2fx; turns differ by at most %.2e mm%s\n", one.track_ms / sum.track_ms, worst,
+              same ? "" : " (turn counts differ!)");
+
+  // The whole in-process evaluation (model, track, match, six objectives) of the same design
+  // against its own turns as the measurement, with the paper's 48 variables.
+  const std::string tmp = std::filesystem::temp_directory_path() / ("bench_evaluation_" + std::to_string(::getpid()));
+  std::filesystem::create_directories(tmp);
+  {
+    std::ofstream pk(tmp + "/peaks.csv");
+    pk.precision(12);
+    pk << "probe,turn,r_mm,height,area,width_mm,flag\n";
+    const TrackModel model = make_track_model(m, {}, &files);
+    for (const auto& t : sum.turns) pk << model.probes[static_cast<size_t>(t.probe)].name << ',' << t.turn << ',' << t.r_mm << ",1,1,1,ok\n";
+    std::ofstream(tmp + "/problem.json") << "{\"format\": \"turnfit-problem/1\", \"machine\": \"" << share("machine.json")
+                                         << "\", \"peaks\": \"peaks.csv\", \"variables\": \"paper\"}\n";
+  }
+  LoadedProblem lp = load_problem(tmp + "/problem.json", "", -1);
+  const auto* p = dynamic_cast<const TurnPatternProblem*>(lp.problem.get());
+  std::vector<double> x;
+  for (const auto& v : p->variables()) x.push_back(dvar_value(m, v.name));
+  std::vector<double> ev;
+  double linf = 0;
+  for (int k = 0; k < repeat; ++k) {
+    const auto a = Clock::now();
+    const TurnPatternResult r = p->simulate(x);
+    ev.push_back(seconds(a) * 1e3);
+    for (size_t i = 0; i < r.delta_mm.size(); ++i)
+      if (r.matched[i]) linf = std::max(linf, std::fabs(r.delta_mm[i]));
+  }
+  std::sort(ev.begin(), ev.end());
+  std::printf("one evaluation of the %zu-variable problem (TurnPatternProblem::simulate): %.2f ms; worst turn %.1e mm "
+              "against its own turns\n", p->n_variables(), ev[ev.size() / 2], linf);
+  std::filesystem::remove_all(tmp);
+  return same ? 0 : 1;
+}
