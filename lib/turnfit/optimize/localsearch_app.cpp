@@ -233,6 +233,18 @@ int run_localsearch(const LocalSearchOptions& o) {
     throw usage_error(shown(o.problem) + " is not a turn-pattern problem (it names no machine): turnfit-localsearch "
                                          "fits a machine to measured turns");
   const std::vector<double> x0 = read_start(*p, o.start, o.pick);
+  {  // A start that loses the particle is bad data; say whether the start file or the machine is at fault.
+    const TurnPatternResult r0 = p->simulate(x0);
+    size_t matched = 0;
+    for (unsigned char m : r0.matched) matched += m != 0;
+    if (!r0.ok || matched == 0) {
+      const std::string of = o.start.empty() ? " (the machine's values)" : " (in " + shown(o.problem) + ")";
+      const std::string why = !r0.ok ? "the start" + of + " cannot be simulated: " + r0.reason
+                                     : "the start" + of + " reaches no measured turn (" + r0.end.status + ")";
+      if (!o.start.empty()) throw data_error(shown(o.start), 0, why);
+      throw data_error(shown(o.problem), 0, "machine: " + p->machine().path + ": " + why);
+    }
+  }
 
   LocalSearchSettings s = o.settings;
   s.threads = cli::resolve_threads(o.common.threads);
@@ -242,13 +254,22 @@ int run_localsearch(const LocalSearchOptions& o) {
                 << "     " << std::flush;
     };
   // Every output is opened before the fit (an unwritable path fails at once) and committed
-  // after it, so a failed or killed run leaves earlier files untouched.
+  // after it, so a failed or killed run leaves earlier files untouched. A file's temporary is
+  // removed again during the fit and made anew after it, so a killed fit leaves none behind.
   std::unique_ptr<OutputFile> best = std::make_unique<OutputFile>(out_path);
   std::unique_ptr<OutputFile> report = o.report.empty() ? nullptr : std::make_unique<OutputFile>(o.report);
   std::unique_ptr<OutputFile> residuals = o.residuals.empty() ? nullptr : std::make_unique<OutputFile>(o.residuals);
+  auto release = [](std::unique_ptr<OutputFile>& f) {
+    if (f && !f->temp_path().empty()) f.reset();
+  };
+  auto reopen = [](std::unique_ptr<OutputFile>& f, const std::string& path) {
+    if (!f && !path.empty()) f = std::make_unique<OutputFile>(path);
+  };
+  release(best), release(report), release(residuals);
 
   const LocalSearchResult r = local_search(*p, x0, s);
   if (s.progress) std::cerr << "\n";
+  reopen(best, out_path), reopen(report, o.report), reopen(residuals, o.residuals);
 
   nlohmann::json dv = nlohmann::json::object();
   for (size_t j = 0; j < r.x.size(); ++j) dv[p->variables()[j].name] = r.x[j];

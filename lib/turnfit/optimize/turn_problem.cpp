@@ -5,6 +5,7 @@
 #include <filesystem>
 #include <set>
 
+#include "turnfit/cli/common.hpp"
 #include "turnfit/io/csv.hpp"
 #include "turnfit/io/error.hpp"
 #include "turnfit/optimize/problem_keys.hpp"
@@ -76,9 +77,17 @@ std::unique_ptr<TurnPatternProblem> TurnPatternProblem::from_json(const nlohmann
       k.fail(it.key(), "unknown key in a turn-pattern problem (known: format, name, description, machine, peaks, "
                        "variables, objectives, constraints, sigma_mm, reference)");
 
-  // The machine, and every file its model reads.
+  // The machine, and every file its model reads. An error in a file the problem names says
+  // which key named it (the code stays: 66 for a missing file, 65 for a bad one).
+  auto named_by = [&](const std::string& key, auto&& read) {
+    try {
+      return read();
+    } catch (const Error& e) {
+      throw Error(e.code(), file + ": " + key + ": " + e.what());
+    }
+  };
   const std::string machine_path = resolve(dir, k.text(k.need(j, "machine", ""), "machine"));
-  Machine m = load_machine(machine_path);
+  Machine m = named_by("machine", [&] { return load_machine(machine_path); });
   if (!m.injection) k.fail("machine", machine_path + " has no injection block to track from");
   if (m.probes.empty()) k.fail("machine", machine_path + " has no probes: it records no turns");
   TrackSettings settings = machine_track_settings(m);
@@ -94,7 +103,7 @@ std::unique_ptr<TurnPatternProblem> TurnPatternProblem::from_json(const nlohmann
   } else {
     peak_files.push_back(resolve(dir, k.text(jp, "peaks")));
   }
-  TurnTable measured = read_measured_turns(peak_files);
+  TurnTable measured = named_by("peaks", [&] { return read_measured_turns(peak_files); });
   if (measured.points.empty()) k.fail("peaks", "no measured turn in " + measured.source);
   for (const auto& probe : measured.probes) {
     bool have = false;
@@ -110,7 +119,10 @@ std::unique_ptr<TurnPatternProblem> TurnPatternProblem::from_json(const nlohmann
   try {
     plan = plan_objectives(objectives, measured);
   } catch (const Error& e) {
-    k.fail("objectives", std::string(e.what()) + " (measured: " + measured.source + ")");
+    k.fail("objectives", std::string(e.what()) + " (measured: " + measured.source + ")" +
+                             (j.contains("objectives") ? ""
+                                                       : "; the problem gives no \"objectives\", so the paper's six apply "
+                                                         "(RRI2 and RRL): give objectives on the measured probes"));
   }
   bool turn_count = true;
   if (j.contains("constraints")) {
@@ -170,7 +182,8 @@ std::unique_ptr<TurnPatternProblem> TurnPatternProblem::from_json(const nlohmann
         if (!(v.sigma > 0)) k.fail(key + "/sigma", "must be positive");
       }
       if (v.start < v.lower || v.start > v.upper)
-        k.fail(key, v.name + "'s value in the machine, " + std::to_string(v.start) + ", lies outside [lower, upper]");
+        k.fail(key, v.name + "'s value in the machine, " + std::to_string(v.start) + ", lies outside [lower, upper] = [" +
+                        cli::fmt(v.lower) + ", " + cli::fmt(v.upper) + "]");
     }
   } else {
     k.fail("variables", "expected \"paper\", a list of names, or of {name, lower, upper, sigma}");
@@ -216,7 +229,7 @@ std::unique_ptr<TurnPatternProblem> TurnPatternProblem::from_json(const nlohmann
   std::unique_ptr<TurnPatternProblem> p(
       new TurnPatternProblem(name, lo, hi, names, objectives.size(), turn_count ? 1 : 0));
   p->file_ = file;
-  p->files_ = read_model_files(m);
+  p->files_ = named_by("machine", [&] { return read_model_files(m); });
   p->machine_ = std::move(m);
   p->settings_ = settings;
   p->vars_ = std::move(vars);
