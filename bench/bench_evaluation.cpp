@@ -121,6 +121,31 @@ int main(int argc, char** argv) {
   std::sort(ev.begin(), ev.end());
   std::printf("one evaluation of the %zu-variable problem (TurnPatternProblem::simulate): %.2f ms; worst turn %.1e mm "
               "against its own turns\n", p->n_variables(), ev[ev.size() / 2], linf);
+  // Smoothness: second differences of every residual along each variable at steps h (fractions
+  // of its bound range). A smooth function gives h^2 scaling; a floor is noise, which limits the
+  // finite-difference Jacobian (error ~ noise / h).
+  std::printf("second differences max_i |r(x+h) - 2 r(x) + r(x-h)| [mm] per variable and step h (fraction of range)\n");
+  std::printf("%-12s", "variable");
+  const std::vector<double> hs = {1e-8, 1e-7, 1e-6, 1e-5, 1e-4};
+  for (double h : hs) std::printf(" %10.0e", h);
+  std::printf("\n");
+  const TurnPatternResult r0 = p->simulate(x);
+  for (size_t j = 0; j < x.size(); j += 3) {
+    std::printf("%-12s", p->variables()[j].name.c_str());
+    for (double h : hs) {
+      std::vector<double> xp = x, xm = x;
+      const double d = h * (p->upper()[j] - p->lower()[j]);
+      xp[j] = std::min(x[j] + d, p->upper()[j]);
+      xm[j] = std::max(x[j] - d, p->lower()[j]);
+      const TurnPatternResult a = p->simulate(xp), b = p->simulate(xm);
+      double worst = 0;
+      for (size_t i = 0; i < r0.delta_mm.size(); ++i)
+        if (r0.matched[i] && a.matched[i] && b.matched[i])
+          worst = std::max(worst, std::fabs(a.delta_mm[i] - 2 * r0.delta_mm[i] + b.delta_mm[i]));
+      std::printf(" %10.2e", worst);
+    }
+    std::printf("\n");
+  }
   std::filesystem::remove_all(tmp);
   return same ? 0 : 1;
 }

@@ -101,6 +101,9 @@ int main(int argc, char** argv) {
     else if (!std::strcmp(argv[i], "--noise")) noise = std::atof(argv[i + 1]);
     else if (!std::strcmp(argv[i], "--weak-prior")) s.weak_prior_range = std::atof(argv[i + 1]);
     else if (!std::strcmp(argv[i], "--threads")) s.threads = static_cast<unsigned>(std::atoi(argv[i + 1]));
+    else if (!std::strcmp(argv[i], "--fd-step")) s.fd_step = std::atof(argv[i + 1]);
+    else if (!std::strcmp(argv[i], "--central")) s.central = std::atoi(argv[i + 1]) != 0;
+    else if (!std::strcmp(argv[i], "--max-iterations")) s.max_iterations = std::atoi(argv[i + 1]);
     else {
       std::fprintf(stderr, "unknown option %s\n", argv[i]);
       return 64;
@@ -108,8 +111,8 @@ int main(int argc, char** argv) {
   }
   const std::string dir = std::filesystem::temp_directory_path() / "bench_localsearch";
   std::filesystem::create_directories(dir);
-  std::printf("ring8, 48 variables from nominal, noise %.3f mm, weak prior %.3g, %u threads\n", noise,
-              s.weak_prior_range, s.threads);
+  std::printf("ring8, 48 variables from nominal, noise %.3f mm, weak prior %.3g, %u threads, fd step %.0e%s\n", noise,
+              s.weak_prior_range, s.threads, s.fd_step, s.central ? " central" : "");
   std::printf("%6s %6s %10s %10s %10s %10s %8s %6s %8s %8s %8s %14s %s\n", "seed", "amp", "linf0[mm]", "rms0[mm]",
               "linf[mm]", "rms[mm]", "chi2/dof", "evals", "vs peer", "wall[s]", "cpu[s]", "det in 2sigma", "termination");
   std::vector<std::pair<std::uint64_t, double>> runs = {{0, 0.0}};  // the negative control first
@@ -117,10 +120,10 @@ int main(int argc, char** argv) {
   for (const auto& [sd, amp] : runs) {
     const Row row = run_truth(sd, amp, noise, s, dir);
     const LocalSearchResult& r = row.r;
-    std::printf("%6llu %6.3f %10.3f %10.3f %10.4f %10.4f %8.3f %6zu %8.2f %8.1f %8.1f %7d/%-6d %s\n",
+    std::printf("%6llu %6.3f %10.3f %10.3f %10.4f %10.4f %8.3f %6zu %8.2f %8.1f %8.1f %7d/%-6d %s (%d it, %zu J)\n",
                 static_cast<unsigned long long>(row.seed), row.amplitude, r.before.linf_mm, r.before.rms_mm,
                 r.after.linf_mm, r.after.rms_mm, r.chi2_dof, r.evaluations, r.evaluations / 1500.0, r.wall_s, r.cpu_s,
-                row.within2, row.determined, r.termination.c_str());
+                row.within2, row.determined, r.termination.c_str(), r.iterations, r.jacobians);
     std::fflush(stdout);
   }
   std::printf("vs peer: evaluations / 1500 (the middle of SciPy's 1200-1800)\n");

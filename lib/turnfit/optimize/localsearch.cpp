@@ -59,6 +59,10 @@ struct Residuals {
   mutable std::mutex mu;
   mutable std::vector<double> jac_u, jac_res;
   mutable Eigen::MatrixXd jac;
+  mutable size_t jacobians = 0;
+  // The last residual-only evaluation (Ceres' trial point; if it is accepted, the Jacobian is
+  // asked for at the same point next).
+  mutable std::vector<double> trial_u, trial_res;
 
   explicit Residuals(const TurnPatternProblem& problem) : p(problem) {}
 
@@ -83,15 +87,19 @@ struct Residuals {
     }
   }
 
-  /// Residuals at u into res, and the Jacobian d r / d u (kept in `jac`, with `jac_u` and
-  /// `jac_res`), its columns evaluated in parallel. A forward step that would leave [0, 1] goes backward instead (and a central
-  /// difference becomes one-sided there).
-  void fill_with_jacobian(const double* u, double* res) const {
+  /// Residuals at u into res, and the Jacobian d r / d u by finite differences (kept in `jac`,
+  /// with `jac_u` and `jac_res`), its columns evaluated in parallel. `known`: the residuals at u
+  /// when already evaluated (else they are, with the columns). A forward step that would leave
+  /// [0, 1] goes backward instead (and a central difference becomes one-sided there).
+  void fill_with_jacobian(const double* u, double* res, const std::vector<double>* known = nullptr) const {
     const size_t ncols = central ? 2 * n : n;
     std::vector<std::vector<double>> out(ncols + 1, std::vector<double>(nres));
+    if (known) out[0] = *known;
     std::vector<double> step(n);
     for (size_t j = 0; j < n; ++j) step[j] = u[j] + h <= 1 ? h : -h;
-    parallel_for(ncols + 1, threads, [&](size_t k, unsigned) {
+    const size_t first = known ? 1 : 0;
+    parallel_for(ncols + 1 - first, threads, [&](size_t i, unsigned) {
+      const size_t k = i + first;
       std::vector<double> v(u, u + n);
       if (k > 0) {
         const size_t j = (k - 1) % n;
@@ -111,6 +119,19 @@ struct Residuals {
     jac_u.assign(u, u + n);
     jac_res = out[0];
     jac = std::move(J);
+    ++jacobians;
+  }
+
+  /// Residuals at u (from the trial cache when Ceres evaluated u just before: it asks for the
+  /// Jacobian at a trial point it accepted) into res, and the finite-difference Jacobian there.
+  void jacobian_at(const double* u, double* res) const {
+    std::vector<double> r;
+    {
+      std::lock_guard<std::mutex> lock(mu);
+      if (!trial_u.empty() && std::equal(trial_u.begin(), trial_u.end(), u)) r = trial_res;
+    }
+    if (r.empty()) fill_with_jacobian(u, res);
+    else fill_with_jacobian(u, res, &r);
   }
 };
 
@@ -138,8 +159,14 @@ class TurnCost final : public ceres::CostFunction {
       }
     }
     if (!cached) {
-      if (want) r_.fill_with_jacobian(u.data(), res);
-      else r_.fill(u.data(), res);
+      if (want) {
+        r_.jacobian_at(u.data(), res);
+      } else {
+        r_.fill(u.data(), res);
+        std::lock_guard<std::mutex> lock(r_.mu);
+        r_.trial_u = u;
+        r_.trial_res.assign(res, res + r_.nres);
+      }
     }
     if (want) {
       std::lock_guard<std::mutex> lock(r_.mu);
@@ -182,8 +209,10 @@ ceres::Solver::Summary lm_pass(const Residuals& res, std::vector<double>& u, con
   o.trust_region_strategy_type = ceres::LEVENBERG_MARQUARDT;
   o.linear_solver_type = ceres::DENSE_QR;
   o.max_num_iterations = s.max_iterations;
-  // Relative cost change 1e-9: far below what a turn's noise moves chi2 by.
-  o.function_tolerance = 1e-9;
+  // Stop when an iteration lowers chi2 by less than 1e-3 of its value per degree of freedom
+  // (chi2 = 2 cost): far below anything the noise can tell apart, and the tail of tiny steps
+  // beyond it is finite-difference noise.
+  o.function_tolerance = 1e-3 / std::max(1.0, static_cast<double>(res.nmeas) - static_cast<double>(res.n));
   o.parameter_tolerance = 1e-9;
   o.gradient_tolerance = 1e-12;
   o.logging_type = ceres::SILENT;
@@ -271,6 +300,10 @@ LocalSearchResult local_search(const TurnPatternProblem& p, const std::vector<do
   auto set_sigma = [&](const std::vector<double>& sg) {
     res.inv_sigma.resize(nmeas);
     for (size_t i = 0; i < nmeas; ++i) res.inv_sigma[i] = 1 / sg[i];
+    // Residuals cached under the old weights are no longer the cost's.
+    std::lock_guard<std::mutex> lock(res.mu);
+    res.jac_u.clear();
+    res.trial_u.clear();
   };
   set_sigma(sigma);
 
@@ -392,6 +425,7 @@ LocalSearchResult local_search(const TurnPatternProblem& p, const std::vector<do
                                       fmt(out.correlation(j, k), 3) + " correlated");
 
   out.evaluations = res.evaluations + own_evaluations;
+  out.jacobians = res.jacobians;
   out.failed_evaluations = res.failed;
   out.wall_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - wall0).count();
   out.cpu_s = static_cast<double>(std::clock() - cpu0) / CLOCKS_PER_SEC;

@@ -67,6 +67,7 @@ struct LocalSearchResult {
   std::string sigma_source;                  ///< "problem file" or how it was estimated
   double chi2_dof = 0;                ///< after the fit (measured turns, less the variables)
   size_t evaluations = 0;             ///< designs simulated
+  size_t jacobians = 0;               ///< finite-difference Jacobians formed
   int iterations = 0;                 ///< Levenberg-Marquardt iterations, all passes
   std::string termination;            ///< Ceres' word for how the last pass ended
   size_t failed_evaluations = 0;      ///< designs that could not be simulated (penalized)
