@@ -254,4 +254,32 @@ TEST_CASE("local search (LM): a noiseless truth with four settings changed comes
   }
   CHECK(r.sigma_source == "problem file (sigma_mm)");
   CHECK(r.evaluations > 0);
+  // The polish never returns a design worse than the least-squares one.
+  REQUIRE(r.x_minimax.size() == r.x.size());
+  CHECK(r.minimax.linf_mm <= r.after.linf_mm);
+  CHECK(r.minimax_evaluations > 0);
+}
+
+TEST_CASE("Lawson's minimax step: the Chebyshev solution of linear models", "[localsearch]") {
+  // A constant fitted to 1, 2, 5: least squares gives 8/3 (worst 7/3), minimax the midrange 3
+  // (worst 2). Residuals (model - data) r + J d with r = -data, J = 1.
+  Eigen::MatrixXd J(3, 1);
+  J << 1, 1, 1;
+  Eigen::VectorXd r(3);
+  r << -1, -2, -5;
+  const Eigen::VectorXd d = lawson_minimax_step(J, r, 0, 2000);
+  CHECK(d(0) == Approx(3).margin(1e-3));  // Lawson converges linearly: 2000 sweeps give ~1e-4
+  // A line a + b t through (0, 0), (1, 1), (2, 0): the minimax line is 0.5 (the three residuals
+  // equioscillate at 0.5); least squares gives 1/3 (worst 2/3).
+  Eigen::MatrixXd A(3, 2);
+  A << 1, 0, 1, 1, 1, 2;
+  Eigen::VectorXd y(3);
+  y << 0, -1, 0;  // r = -data
+  const Eigen::VectorXd e = lawson_minimax_step(A, y, 0, 2000);
+  CHECK(e(0) == Approx(0.5).margin(1e-3));
+  CHECK(e(1) == Approx(0).margin(1e-3));
+  CHECK((y + A * e).cwiseAbs().maxCoeff() == Approx(0.5).margin(1e-3));
+  // The ridge shortens the step toward 0.
+  const Eigen::VectorXd g = lawson_minimax_step(J, r, 1, 2000);
+  CHECK(std::fabs(g(0)) < 3 - 0.1);
 }

@@ -13,6 +13,7 @@
 #include "turnfit/io/error.hpp"
 #include "turnfit/io/parallel.hpp"
 #include "turnfit/optimize/ceres_logging.hpp"
+#include "turnfit/optimize/coordinate_search.hpp"
 
 namespace turnfit {
 
@@ -226,6 +227,70 @@ ceres::Solver::Summary lm_pass(const Residuals& res, std::vector<double>& u, con
   return summary;
 }
 
+/// The minimax polish (see local_search); u and J (the fit's residual Jacobian at u, rows
+/// weighted by inv_sigma, priors after the data) are the least-squares result's.
+void minimax_polish(const TurnPatternProblem& p, const Residuals& res, std::vector<double> u, Eigen::MatrixXd J,
+                    const std::vector<double>& sigma, const LocalSearchSettings& s, LocalSearchResult& out) {
+  const size_t n = res.n, nmeas = res.nmeas;
+  const FitSummary& ls = out.after;
+  FitSummary best = ls;
+  out.x_minimax = out.x;
+  out.minimax = ls;
+  TurnPatternResult cur = p.simulate(out.x);
+  ++out.minimax_evaluations;
+  out.minimax_termination = "no step lowered the worst turn";
+  while (out.minimax_steps < s.minimax_steps) {
+    // The matched data rows, in mm per unit of scaled variable.
+    std::vector<Eigen::Index> rows;
+    for (size_t i = 0; i < nmeas; ++i)
+      if (cur.matched[i]) rows.push_back(static_cast<Eigen::Index>(i));
+    Eigen::MatrixXd Jm(static_cast<Eigen::Index>(rows.size()), static_cast<Eigen::Index>(n));
+    Eigen::VectorXd r(static_cast<Eigen::Index>(rows.size()));
+    for (size_t k = 0; k < rows.size(); ++k) {
+      const auto i = rows[k];
+      Jm.row(static_cast<Eigen::Index>(k)) = J.row(i) * sigma[static_cast<size_t>(i)];
+      r(static_cast<Eigen::Index>(k)) = cur.delta_mm[static_cast<size_t>(i)];
+    }
+    const Eigen::VectorXd d = lawson_minimax_step(Jm, r, 1e-4);
+    // Along the linearized minimax step, halved until the paper's rule accepts: the worst turn
+    // falls linearly with the step length, the l2 (at its least-squares minimum) rises only
+    // quadratically, so a short enough step passes unless the linear model is wrong.
+    bool ok = false;
+    std::vector<double> v(n), x;
+    TurnPatternResult tr;
+    FitSummary f;
+    for (double t = 1; t >= 1.0 / 64 && !ok; t /= 2) {
+      for (size_t j = 0; j < n; ++j) v[j] = std::min(std::max(u[j] + t * d(static_cast<Eigen::Index>(j)), 0.0), 1.0);
+      x = res.x_of(v.data());
+      tr = p.simulate(x);
+      ++out.minimax_evaluations;
+      f = summarize(tr, sigma);
+      ok = f.ok && f.violation <= ls.violation && f.matched >= ls.matched && f.linf_mm < best.linf_mm - 1e-6;
+      if (ok) {
+        const CoordinateNorms now = coordinate_norms(cur, p.measured()), trial = coordinate_norms(tr, p.measured());
+        ok = coordinate_accepts(now, trial, s.minimax_tolerance_mm, 1e-6);
+      }
+    }
+    if (!ok) {
+      out.minimax_termination = out.minimax_steps ? "converged (no step along the minimax direction passes the rule)"
+                                                  : "no step lowered the worst turn";
+      break;
+    }
+    u = v;
+    cur = tr;
+    best = f;
+    out.x_minimax = x;
+    out.minimax = f;
+    ++out.minimax_steps;
+    out.minimax_termination = "step limit";
+    if (out.minimax_steps == s.minimax_steps) break;
+    std::vector<double> r0(res.nres);
+    res.fill_with_jacobian(u.data(), r0.data(), nullptr);
+    std::lock_guard<std::mutex> lock(res.mu);
+    J = res.jac;
+  }
+}
+
 std::string fmt(double v, int digits = 3) {
   char b[48];
   std::snprintf(b, sizeof b, "%.*g", digits, v);
@@ -233,6 +298,23 @@ std::string fmt(double v, int digits = 3) {
 }
 
 }  // namespace
+
+Eigen::VectorXd lawson_minimax_step(const Eigen::MatrixXd& J, const Eigen::VectorXd& r, double ridge, int sweeps) {
+  const Eigen::Index m = J.rows(), n = J.cols();
+  Eigen::VectorXd w = Eigen::VectorXd::Constant(m, 1.0 / static_cast<double>(std::max<Eigen::Index>(m, 1)));
+  Eigen::VectorXd d = Eigen::VectorXd::Zero(n);
+  for (int k = 0; k < sweeps; ++k) {
+    const Eigen::MatrixXd A = J.transpose() * w.asDiagonal() * J;
+    const double mu = ridge * std::max(A.trace() / static_cast<double>(std::max<Eigen::Index>(n, 1)), 1e-300);
+    const Eigen::VectorXd b = -(J.transpose() * w.asDiagonal() * r);
+    d = (A + mu * Eigen::MatrixXd::Identity(n, n)).ldlt().solve(b);
+    const Eigen::VectorXd e = (r + J * d).cwiseAbs();
+    const double total = w.dot(e);
+    if (!(total > 0)) break;  // every residual zero: nothing left to balance
+    w = w.cwiseProduct(e) / total;
+  }
+  return d;
+}
 
 LocalSearchResult local_search(const TurnPatternProblem& p, const std::vector<double>& x0,
                                const LocalSearchSettings& s) {
@@ -424,7 +506,11 @@ LocalSearchResult local_search(const TurnPatternProblem& p, const std::vector<do
         out.identifiability.push_back(p.variables()[j].name + " and " + p.variables()[k].name + ": " +
                                       fmt(out.correlation(j, k), 3) + " correlated");
 
-  out.evaluations = res.evaluations + own_evaluations;
+  const size_t fit_evaluations = res.evaluations;
+  if (s.minimax) minimax_polish(p, res, u, J, sigma, s, out);  // counts its trial designs
+  const size_t polish_jacobians = res.evaluations - fit_evaluations;
+  out.evaluations = res.evaluations + own_evaluations + out.minimax_evaluations;
+  out.minimax_evaluations += polish_jacobians;
   out.jacobians = res.jacobians;
   out.failed_evaluations = res.failed;
   out.wall_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - wall0).count();

@@ -29,6 +29,13 @@ struct LocalSearchSettings {
   /// another number): finite, so a failed design steers the fit away instead of stopping it.
   /// 0: 10 mm or twice the start's worst turn, whichever is larger.
   double miss_penalty_mm = 0;
+  /// Minimax polish after the least-squares fit: steps that lower the worst turn while neither
+  /// the 2nd nor the 3rd largest error nor the probe-weighted l2 rises by more than
+  /// minimax_tolerance_mm (the acceptance rule of the paper's local search, whose goal is the
+  /// max error; 0.01 mm is its tolerance). At most minimax_steps accepted steps.
+  bool minimax = true;
+  double minimax_tolerance_mm = 0.01;
+  int minimax_steps = 10;
   /// Called after each Levenberg-Marquardt iteration with (pass, iteration, cost); may be empty.
   std::function<void(int, int, double)> progress;
 };
@@ -72,7 +79,20 @@ struct LocalSearchResult {
   std::string termination;            ///< Ceres' word for how the last pass ended
   size_t failed_evaluations = 0;      ///< designs that could not be simulated (penalized)
   double wall_s = 0, cpu_s = 0;       ///< time taken (CPU: every thread of the process)
+  /// The minimax polish (settings.minimax): its design (x when it found nothing better), its
+  /// summary, accepted steps and the designs it simulated (included in `evaluations`).
+  std::vector<double> x_minimax;
+  FitSummary minimax;
+  int minimax_steps = 0;
+  size_t minimax_evaluations = 0;
+  std::string minimax_termination;
 };
+
+/// The step delta minimizing max_i |r_i + (J delta)_i| + ridge: Lawson's iteratively reweighted
+/// least squares (weights w_i <- w_i |e_i| / sum_k w_k |e_k|, `sweeps` times), each solving
+/// min sum_i w_i (r_i + J_i delta)^2 + mu |delta|^2, mu = ridge * trace(J^T W J) / n. Exposed for
+/// its test: on a linear model it converges to the minimax (Chebyshev) solution.
+Eigen::VectorXd lawson_minimax_step(const Eigen::MatrixXd& J, const Eigen::VectorXd& r, double ridge, int sweeps = 200);
 
 /// Summarizes one design against the measurement (sigma per measured point for chi2).
 FitSummary summarize(const TurnPatternResult& r, const std::vector<double>& sigma_mm);
@@ -82,6 +102,10 @@ FitSummary summarize(const TurnPatternResult& r, const std::vector<double>& sigm
 /// prior. Without the problem's sigma_mm, a first pass weighs each probe by its wire step /
 /// sqrt(12) (the readout's resolution); the uncertainty is then estimated per probe from the
 /// converged residuals (chi2 per degree of freedom 1) and a second pass fits with it.
+/// Then, with settings.minimax, the minimax polish: from the least-squares result, steps that
+/// minimize the largest |residual| [mm] of the model linearized by the Jacobian (Lawson's
+/// iteratively reweighted least squares, with a ridge toward the current design that acts as a
+/// trust region), each kept by the paper's rule (see LocalSearchSettings::minimax).
 /// EX_DATAERR if x0 cannot be simulated; EX_USAGE if x0 lies outside the bounds.
 LocalSearchResult local_search(const TurnPatternProblem& p, const std::vector<double>& x0,
                                const LocalSearchSettings& s);

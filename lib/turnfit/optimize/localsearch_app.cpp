@@ -30,6 +30,13 @@ void add_localsearch_options(CLI::App& app, LocalSearchOptions& o) {
                  "(default: the machine's values)");
   app.add_option("--pick", o.pick, "Design of a front or log to start from: linf (smallest largest objective) or sum")
       ->check(CLI::IsMember({"linf", "sum"}));
+  app.add_option("--method", o.method,
+                 "lm: Levenberg-Marquardt on every turn, then the minimax polish (default); coordinate: the "
+                 "paper's one-variable-at-a-time search, for comparison")
+      ->check(CLI::IsMember({"lm", "coordinate"}));
+  app.add_option("--sweeps", o.sweeps_without_gain,
+                 "coordinate: stop after this many sweeps that keep steps but lower no worst turn (default 3)")
+      ->check(CLI::Range(1, 1000000));
   app.add_option("--report", o.report, "Write the fit's report (JSON) here");
   app.add_option("--residuals", o.residuals, "Write the result's residuals (turnfit-compare's CSV) here");
   app.add_option("--max-iterations", o.settings.max_iterations, "Levenberg-Marquardt iterations per pass (default 60)")
@@ -37,6 +44,11 @@ void add_localsearch_options(CLI::App& app, LocalSearchOptions& o) {
   app.add_flag("--central", o.settings.central, "Central differences (twice the evaluations per Jacobian)");
   app.add_option("--fd-step", o.settings.fd_step, "Finite-difference step, fraction of each bound range (default 1e-6)")
       ->check(CLI::Range(1e-12, 0.1));
+  app.add_flag("!--no-minimax", o.settings.minimax,
+               "Skip the minimax polish (-o then gets the least-squares design)");
+  app.add_option("--minimax-tolerance", o.settings.minimax_tolerance_mm,
+                 "How far [mm] a polish step may raise the 2nd or 3rd largest error or the weighted l2 (default 0.01)")
+      ->check(CLI::Range(0.0, 1e6));
   app.add_option("--weak-prior", o.settings.weak_prior_range,
                  "Width of the weak prior toward the start, in bound ranges (default 1; 0: none)")
       ->check(CLI::Range(0.0, 1e6));
@@ -177,7 +189,7 @@ nlohmann::json summary_json(const TurnPatternProblem& p, const FitSummary& f, do
 }  // namespace
 
 nlohmann::json localsearch_report(const TurnPatternProblem& p, const LocalSearchResult& r, const std::string& start,
-                                  bool provenance) {
+                                  bool provenance, double tolerance_mm) {
   nlohmann::json j;
   j["format"] = "turnfit-localsearch/1";
   if (provenance) j["provenance"] = cli::provenance();
@@ -190,6 +202,18 @@ nlohmann::json localsearch_report(const TurnPatternProblem& p, const LocalSearch
   const double dof = static_cast<double>(r.before.matched) - static_cast<double>(p.n_variables());
   j["before"] = summary_json(p, r.before, dof > 0 ? r.before.chi2 / dof : std::nan(""));
   j["after"] = summary_json(p, r.after, r.chi2_dof);
+  if (!r.x_minimax.empty()) {
+    const double dof_m = static_cast<double>(r.minimax.matched) - static_cast<double>(p.n_variables());
+    nlohmann::json mm = summary_json(p, r.minimax, dof_m > 0 ? r.minimax.chi2 / dof_m : std::nan(""));
+    mm["steps"] = r.minimax_steps;
+    mm["evaluations"] = r.minimax_evaluations;
+    mm["termination"] = r.minimax_termination;
+    mm["tolerance_mm"] = tolerance_mm;
+    nlohmann::json xv = nlohmann::json::object();
+    for (size_t k = 0; k < r.x_minimax.size(); ++k) xv[p.variables()[k].name] = jnum(r.x_minimax[k]);
+    mm["x"] = xv;
+    j["minimax"] = mm;
+  }
   j["evaluations"] = r.evaluations;
   j["failed_evaluations"] = r.failed_evaluations;
   j["iterations"] = r.iterations;
@@ -219,6 +243,45 @@ nlohmann::json localsearch_report(const TurnPatternProblem& p, const LocalSearch
   for (double s : r.singular_values) sv.push_back(jnum(s));
   j["singular_values"] = sv;
   j["identifiability"] = r.identifiability;
+  return j;
+}
+
+nlohmann::json coordinate_report(const TurnPatternProblem& p, const CoordinateResult& r, const std::string& start,
+                                 bool provenance) {
+  nlohmann::json j;
+  j["format"] = "turnfit-localsearch/1";
+  if (provenance) j["provenance"] = cli::provenance();
+  j["problem"] = p.file();
+  j["method"] = "coordinate";
+  j["start"] = start.empty() ? "the machine's values" : shown(start);
+  j["before"] = summary_json(p, r.before, std::nan(""));
+  j["after"] = summary_json(p, r.after, std::nan(""));
+  auto norms = [](const CoordinateNorms& n) {
+    return nlohmann::json{{"linf_mm", jnum(n.linf_mm)}, {"second_mm", jnum(n.second_mm)}, {"third_mm", jnum(n.third_mm)},
+                          {"weighted_l2_mm", jnum(n.wl2_mm)}};
+  };
+  j["norms_before"] = norms(r.norms_before);
+  j["norms_after"] = norms(r.norms_after);
+  j["evaluations"] = r.evaluations;
+  j["accepted_steps"] = r.accepted;
+  j["sweeps"] = r.sweeps;
+  j["refused_failed"] = r.refused_failed;
+  j["termination"] = r.termination;
+  j["wall_s"] = r.wall_s;
+  j["cpu_s"] = r.cpu_s;
+  nlohmann::json vars = nlohmann::json::array();
+  for (size_t k = 0; k < r.x.size(); ++k) {
+    const TurnVariable& v = p.variables()[k];
+    vars.push_back({{"name", v.name},
+                    {"unit", v.unit},
+                    {"start", jnum(v.start)},
+                    {"value", jnum(r.x[k])},
+                    {"lower", jnum(v.lower)},
+                    {"upper", jnum(v.upper)},
+                    {"effect_linf_mm", jnum(k < r.effect_linf_mm.size() ? r.effect_linf_mm[k] : std::nan(""))},
+                    {"effect_weighted_l2_mm", jnum(k < r.effect_wl2_mm.size() ? r.effect_wl2_mm[k] : std::nan(""))}});
+  }
+  j["variables"] = vars;
   return j;
 }
 
@@ -267,22 +330,55 @@ int run_localsearch(const LocalSearchOptions& o) {
   };
   release(best), release(report), release(residuals);
 
+  // Writes the design, the report and the residuals, then commits them together.
+  auto write_outputs = [&](const std::vector<double>& x, const nlohmann::json& rep) {
+    reopen(best, out_path), reopen(report, o.report), reopen(residuals, o.residuals);
+    nlohmann::json dv = nlohmann::json::object();
+    for (size_t j = 0; j < x.size(); ++j) dv[p->variables()[j].name] = x[j];
+    best->stream() << dv.dump(1) << "\n";
+    if (report) report->stream() << rep.dump(1) << "\n";
+    if (residuals) {
+      const TurnPatternResult fin = p->simulate(x);
+      CompareReport cr = make_compare_report(p->measured(), fin.simulated, p->objectives(), 0);
+      write_residuals_csv(residuals->stream(), cr, !o.common.no_provenance);
+    }
+    if (residuals) residuals->commit();
+    if (report) report->commit();
+    best->commit();
+  };
+
+  if (o.method == "coordinate") {
+    CoordinateSettings cs;
+    cs.threads = s.threads;
+    cs.max_sweeps_without_gain = o.sweeps_without_gain;
+    cs.tolerance_mm = s.minimax_tolerance_mm;
+    if (!o.common.quiet && cli::stderr_is_tty())
+      cs.progress = [](int sweep, double linf) {
+        std::cerr << "\rturnfit-localsearch: sweep " << sweep << "  worst turn " << cli::fmt(linf, 4) << " mm     "
+                  << std::flush;
+      };
+    const CoordinateResult c = coordinate_search(*p, x0, cs);
+    if (cs.progress) std::cerr << "\n";
+    write_outputs(c.x, !o.report.empty() ? coordinate_report(*p, c, o.start, !o.common.no_provenance) : nlohmann::json());
+    if (!o.common.quiet) {
+      char buf[512];
+      std::snprintf(buf, sizeof buf,
+                    "turnfit-localsearch: coordinate search: worst turn %.3f -> %.3f mm, RMS %.3f -> %.3f mm; %zu "
+                    "evaluations, %zu sweeps, %zu steps kept, %.1f s (%s)\n",
+                    c.before.linf_mm, c.after.linf_mm, c.before.rms_mm, c.after.rms_mm, c.evaluations, c.sweeps,
+                    c.accepted, c.wall_s, c.termination.c_str());
+      std::cerr << buf;
+    }
+    return 0;
+  }
+
   const LocalSearchResult r = local_search(*p, x0, s);
   if (s.progress) std::cerr << "\n";
-  reopen(best, out_path), reopen(report, o.report), reopen(residuals, o.residuals);
-
-  nlohmann::json dv = nlohmann::json::object();
-  for (size_t j = 0; j < r.x.size(); ++j) dv[p->variables()[j].name] = r.x[j];
-  best->stream() << dv.dump(1) << "\n";
-  if (report) report->stream() << localsearch_report(*p, r, o.start, !o.common.no_provenance).dump(1) << "\n";
-  if (residuals) {
-    const TurnPatternResult fin = p->simulate(r.x);
-    CompareReport cr = make_compare_report(p->measured(), fin.simulated, p->objectives(), 0);
-    write_residuals_csv(residuals->stream(), cr, !o.common.no_provenance);
-  }
-  if (residuals) residuals->commit();
-  if (report) report->commit();
-  best->commit();
+  // The design written: the minimax polish's (the least-squares one when it found nothing
+  // better, or without it); the report has both.
+  write_outputs(r.x_minimax.empty() ? r.x : r.x_minimax,
+                !o.report.empty() ? localsearch_report(*p, r, o.start, !o.common.no_provenance, s.minimax_tolerance_mm)
+                       : nlohmann::json());
 
   if (!o.common.quiet) {
     char buf[512];
@@ -293,6 +389,14 @@ int run_localsearch(const LocalSearchOptions& o) {
                   r.sigma_source.rfind("problem", 0) == 0 ? "from the problem" : "estimated", r.evaluations,
                   r.iterations, r.wall_s, r.termination.c_str());
     std::cerr << buf;
+    if (!r.x_minimax.empty()) {
+      std::snprintf(buf, sizeof buf,
+                    "turnfit-localsearch: minimax polish: worst turn %.3f -> %.3f mm, RMS %.3f mm; %d steps, %zu "
+                    "evaluations (%s)\n",
+                    r.after.linf_mm, r.minimax.linf_mm, r.minimax.rms_mm, r.minimax_steps, r.minimax_evaluations,
+                    r.minimax_termination.c_str());
+      std::cerr << buf;
+    }
     for (const auto& v : r.variables)
       if (v.at_bound) cli::warn(o.common, v.name + " ended on a bound (" + cli::fmt(v.value) + ")");
     if (r.failed_evaluations)

@@ -7,6 +7,7 @@
 #include <vector>
 
 #include "turnfit/cli/common.hpp"
+#include "turnfit/optimize/coordinate_search.hpp"
 #include "turnfit/optimize/localsearch.hpp"
 
 namespace turnfit {
@@ -20,6 +21,8 @@ struct LocalSearchOptions {
   std::string report;         ///< --report: JSON report
   std::string residuals;      ///< --residuals: compare's residual CSV of the result
   LocalSearchSettings settings;
+  std::string method = "lm";  ///< --method: lm | coordinate
+  int sweeps_without_gain = 3;  ///< --sweeps (coordinate): stop after this many sweeps without gain
 };
 
 /// Registers turnfit-localsearch's options.
@@ -34,7 +37,11 @@ std::vector<double> read_start(const TurnPatternProblem& p, const std::string& p
 
 /// The report (turnfit-localsearch/1) of a finished search.
 nlohmann::json localsearch_report(const TurnPatternProblem& p, const LocalSearchResult& r, const std::string& start,
-                                  bool provenance);
+                                  bool provenance, double tolerance_mm);
+
+/// The report (turnfit-localsearch/1, method "coordinate") of a finished coordinate search.
+nlohmann::json coordinate_report(const TurnPatternProblem& p, const CoordinateResult& r, const std::string& start,
+                                 bool provenance);
 
 /// Runs turnfit-localsearch; returns the exit code.
 int run_localsearch(const LocalSearchOptions& o);
