@@ -283,3 +283,32 @@ TEST_CASE("Lawson's minimax step: the Chebyshev solution of linear models", "[lo
   const Eigen::VectorXd g = lawson_minimax_step(J, r, 1, 2000);
   CHECK(std::fabs(g(0)) < 3 - 0.1);
 }
+
+TEST_CASE("identifiability in words: equivalent variables, a free one, correlated pairs", "[localsearch]") {
+  // Columns a, b, c act identically (only their sum matters), d does nothing, e acts alone;
+  // 40 residuals, strong enough (column norms ~ 60 sigma per bound range) to fix what they fix.
+  const Eigen::Index m = 40;
+  Eigen::MatrixXd J = Eigen::MatrixXd::Zero(m, 5);
+  for (Eigen::Index i = 0; i < m; ++i) {
+    const double t = static_cast<double>(i) / static_cast<double>(m - 1);
+    J(i, 0) = J(i, 1) = J(i, 2) = 10 * std::sin(3 * t);
+    J(i, 4) = 10 * std::cos(7 * t);
+  }
+  Eigen::MatrixXd corr = Eigen::MatrixXd::Identity(5, 5);
+  corr(0, 4) = corr(4, 0) = 0.97;
+  const auto words = describe_identifiability({"a", "b", "c", "d", "e"}, J, corr);
+  std::string all;
+  for (const auto& w : words) all += w + "\n";
+  INFO(all);
+  REQUIRE(words.size() == 3);
+  CHECK(words[0].rfind("a, b and c: only their sum (in bound ranges) is determined", 0) == 0);
+  CHECK(words[1] == "d: not determined by the turns (they do not depend on it)");
+  CHECK(words[2] == "a and e: 0.970 correlated");
+  // Unequal weights are named with their coefficients.
+  J.col(1) *= 3;
+  const auto w2 = describe_identifiability({"a", "b", "c", "d", "e"}, J, Eigen::MatrixXd::Identity(5, 5));
+  for (const auto& w : w2) all += w + "\n";
+  INFO(all);
+  REQUIRE(w2.size() == 2);
+  CHECK(w2[0].find("only 0.33 a + 1 b + 0.33 c is determined") != std::string::npos);
+}

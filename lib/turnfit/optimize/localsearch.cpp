@@ -4,6 +4,9 @@
 #include <ceres/ceres.h>
 
 #include <algorithm>
+#include <functional>
+#include <map>
+#include <tuple>
 #include <atomic>
 #include <chrono>
 #include <cmath>
@@ -316,6 +319,114 @@ Eigen::VectorXd lawson_minimax_step(const Eigen::MatrixXd& J, const Eigen::Vecto
   return d;
 }
 
+std::vector<std::string> describe_identifiability(const std::vector<std::string>& names, const Eigen::MatrixXd& Jd,
+                                                  const Eigen::MatrixXd& correlation) {
+  std::vector<std::string> out;
+  const size_t n = names.size();
+  Eigen::JacobiSVD<Eigen::MatrixXd> svd(Jd, Eigen::ComputeFullV);
+  const Eigen::VectorXd sv = svd.singularValues();
+  // Weak directions: the turns fix them to worse than a tenth of a bound range (directions
+  // beyond the rank have no singular value: not fixed at all).
+  std::vector<Eigen::VectorXd> weak;
+  std::vector<double> width;
+  for (Eigen::Index k = 0; k < static_cast<Eigen::Index>(n); ++k) {
+    const double s = k < sv.size() ? sv(k) : 0.0;
+    const double w = s > 1e-12 * std::max(sv.size() ? sv(0) : 1.0, 1e-300) ? 1 / s : std::numeric_limits<double>::infinity();
+    if (w < 0.1) continue;
+    weak.push_back(svd.matrixV().col(k));
+    width.push_back(w);
+  }
+  // The projector on the weak subspace (independent of how its basis was chosen): a variable
+  // with at least 30 % of its unit vector in it is involved, and two involved variables whose
+  // weak parts overlap (|P_jk| >= 0.3 sqrt(P_jj P_kk)) belong to one group.
+  Eigen::MatrixXd P = Eigen::MatrixXd::Zero(static_cast<Eigen::Index>(n), static_cast<Eigen::Index>(n));
+  for (const auto& v : weak) P += v * v.transpose();
+  std::vector<size_t> parent(n);
+  for (size_t j = 0; j < n; ++j) parent[j] = j;
+  std::function<size_t(size_t)> root = [&](size_t j) { return parent[j] == j ? j : parent[j] = root(parent[j]); };
+  auto Pe = [&](size_t j, size_t k) { return P(static_cast<Eigen::Index>(j), static_cast<Eigen::Index>(k)); };
+  std::vector<char> involved(n, 0);
+  for (size_t j = 0; j < n; ++j) involved[j] = Pe(j, j) >= 0.09;
+  for (size_t j = 0; j < n; ++j)
+    for (size_t k = j + 1; k < n; ++k)
+      if (involved[j] && involved[k] && std::fabs(Pe(j, k)) >= 0.3 * std::sqrt(Pe(j, j) * Pe(k, k)))
+        parent[root(k)] = root(j);
+  std::map<size_t, std::vector<size_t>> groups;
+  for (size_t j = 0; j < n; ++j)
+    if (involved[j]) groups[root(j)].push_back(j);
+  auto list = [&](const std::vector<size_t>& g) {
+    std::string t;
+    for (size_t k = 0; k < g.size(); ++k) {
+      if (k == 6) return t + " and " + std::to_string(g.size() - 6) + " more";
+      t += (k == 0 ? "" : (k + 1 == g.size() ? " and " : ", ")) + names[g[k]];
+    }
+    return t;
+  };
+  for (const auto& [r, g] : groups) {
+    // The group's share of the weak subspace: its trace counts the free directions in it.
+    const Eigen::Index gs = static_cast<Eigen::Index>(g.size());
+    Eigen::MatrixXd Pg(gs, gs);
+    for (Eigen::Index a = 0; a < gs; ++a)
+      for (Eigen::Index b = 0; b < gs; ++b) Pg(a, b) = Pe(g[static_cast<size_t>(a)], g[static_cast<size_t>(b)]);
+    // How loosely: the largest spread of the group's variables over the weak directions with a
+    // width (sqrt of the top eigenvalue of sum_k width_k^2 v_k v_k^T on the group); infinite when
+    // directions the turns do not depend on at all hold half a unit vector of the group.
+    Eigen::MatrixXd Cg = Eigen::MatrixXd::Zero(gs, gs);
+    double unfixed = 0;
+    for (size_t k = 0; k < weak.size(); ++k) {
+      Eigen::VectorXd vg(gs);
+      for (Eigen::Index a = 0; a < gs; ++a) vg(a) = weak[k](static_cast<Eigen::Index>(g[static_cast<size_t>(a)]));
+      if (std::isfinite(width[k])) Cg += width[k] * width[k] * vg * vg.transpose();
+      else unfixed += vg.squaredNorm();
+    }
+    const double loosest = unfixed >= 0.5 ? std::numeric_limits<double>::infinity()
+                                          : std::sqrt(std::max(0.0, Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd>(Cg).eigenvalues().maxCoeff()));
+    const long free_dirs = std::lround(Pg.trace());
+    const long fixed = static_cast<long>(g.size()) - free_dirs;
+    const std::string how = std::isfinite(loosest) ? "the loosest combination to +-" + fmt(loosest, 2) + " of a bound range"
+                                                   : "some combination not at all";
+    if (g.size() == 1) {
+      out.push_back(names[g[0]] + ": not determined by the turns (" +
+                    (std::isfinite(loosest) ? "+-" + fmt(loosest, 2) + " of its bound range" : "they do not depend on it") + ")");
+    } else if (fixed == 1) {
+      // The one determined combination: the group's direction least in the weak subspace.
+      Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> es(Pg);
+      Eigen::VectorXd d = es.eigenvectors().col(0);  // smallest eigenvalue first
+      Eigen::Index big = 0;
+      d.cwiseAbs().maxCoeff(&big);
+      if (d(big) < 0) d = -d;  // the largest coefficient 1
+      const bool sum = d.minCoeff() > 0 && d.maxCoeff() < 1.5 * d.minCoeff();
+      std::string combo;
+      for (size_t a = 0; a < g.size(); ++a) {
+        const double cf = d(static_cast<Eigen::Index>(a)) / d(big);
+        combo += (a == 0 ? (cf < 0 ? "-" : "") : (cf < 0 ? " - " : " + ")) + fmt(std::fabs(cf), 2) + " " + names[g[a]];
+      }
+      out.push_back(list(g) + ": only " + (sum ? "their sum (in bound ranges) is determined" : combo + " is determined") +
+                    "; the turns fix " + how);
+    } else if (fixed <= 0) {
+      out.push_back(list(g) + ": not determined by the turns, alone or together (" + how + ")");
+    } else {
+      out.push_back(list(g) + ": only " + std::to_string(fixed) + " combinations of these " + std::to_string(g.size()) +
+                    " are determined; the turns fix " + how);
+    }
+  }
+  // Strongly correlated pairs, strongest first (at most 12).
+  std::vector<std::tuple<double, size_t, size_t>> pairs;
+  for (size_t j = 0; j < n; ++j)
+    for (size_t k = j + 1; k < n; ++k)
+      if (std::fabs(correlation(static_cast<Eigen::Index>(j), static_cast<Eigen::Index>(k))) >= 0.95)
+        pairs.emplace_back(-std::fabs(correlation(static_cast<Eigen::Index>(j), static_cast<Eigen::Index>(k))), j, k);
+  std::sort(pairs.begin(), pairs.end());
+  for (size_t q = 0; q < pairs.size() && q < 12; ++q) {
+    const auto [c, j, k] = pairs[q];
+    char cbuf[32];
+    std::snprintf(cbuf, sizeof cbuf, "%.3f", correlation(static_cast<Eigen::Index>(j), static_cast<Eigen::Index>(k)));
+    out.push_back(names[j] + " and " + names[k] + ": " + cbuf + " correlated");
+  }
+  if (pairs.size() > 12) out.push_back("and " + std::to_string(pairs.size() - 12) + " more pairs correlated above 0.95");
+  return out;
+}
+
 LocalSearchResult local_search(const TurnPatternProblem& p, const std::vector<double>& x0,
                                const LocalSearchSettings& s) {
   quiet_ceres_logging();
@@ -474,37 +585,9 @@ LocalSearchResult local_search(const TurnPatternProblem& p, const std::vector<do
   const Eigen::VectorXd sv = svd.singularValues();
   for (Eigen::Index k = 0; k < sv.size(); ++k) out.singular_values.push_back(sv(k));
 
-  // In words: each direction the turns fix to worse than a tenth of a bound range, and every
-  // strongly correlated pair.
-  for (Eigen::Index k = 0; k < sv.size(); ++k) {
-    const double width = sv(k) > 0 ? 1 / sv(k) : std::numeric_limits<double>::infinity();
-    if (width < 0.1) continue;
-    const Eigen::VectorXd v = svd.matrixV().col(k);
-    std::vector<size_t> idx;
-    for (size_t j = 0; j < n; ++j)
-      if (std::fabs(v(static_cast<Eigen::Index>(j))) >= 0.2) idx.push_back(j);
-    std::sort(idx.begin(), idx.end(), [&](size_t a, size_t b) {
-      return std::fabs(v(static_cast<Eigen::Index>(a))) > std::fabs(v(static_cast<Eigen::Index>(b)));
-    });
-    std::string names, combo;
-    for (size_t j : idx) {
-      names += (names.empty() ? "" : ", ") + p.variables()[j].name;
-      const double c = v(static_cast<Eigen::Index>(j)) * (v(static_cast<Eigen::Index>(idx[0])) < 0 ? -1 : 1);
-      combo += (c < 0 ? " - " : (combo.empty() ? "" : " + ")) + fmt(std::fabs(c), 2) + " " + p.variables()[j].name;
-    }
-    const std::string fixed = std::isfinite(width) ? "the turns fix it to +-" + fmt(width, 2) + " of a bound range"
-                                                   : "the turns do not depend on it";
-    if (idx.size() == 1)
-      out.identifiability.push_back(names + ": not determined by the data (" + fixed + ")");
-    else
-      out.identifiability.push_back(names + ": only combinations are determined; " + combo +
-                                    " (each in units of its bound range) is not (" + fixed + ")");
-  }
-  for (size_t j = 0; j < n; ++j)
-    for (size_t k = j + 1; k < n; ++k)
-      if (std::fabs(out.correlation(j, k)) >= 0.95)
-        out.identifiability.push_back(p.variables()[j].name + " and " + p.variables()[k].name + ": " +
-                                      fmt(out.correlation(j, k), 3) + " correlated");
+  std::vector<std::string> names;
+  for (const auto& v : p.variables()) names.push_back(v.name);
+  out.identifiability = describe_identifiability(names, Jd, out.correlation);
 
   const size_t fit_evaluations = res.evaluations;
   if (s.minimax) minimax_polish(p, res, u, J, sigma, s, out);  // counts its trial designs

@@ -94,6 +94,14 @@ struct LocalSearchResult {
 /// its test: on a linear model it converges to the minimax (Chebyshev) solution.
 Eigen::VectorXd lawson_minimax_step(const Eigen::MatrixXd& J, const Eigen::VectorXd& r, double ridge, int sweeps = 200);
 
+/// What the turns do not determine, in words: variables that share directions the data fix to
+/// worse than a tenth of a bound range form groups ("A, B and C: only their sum (in bound
+/// ranges) is determined", "D: not determined by the turns"), then the pairs correlated above
+/// 0.95, strongest first. Jd: the data rows of the Jacobian, variables scaled to their bounds
+/// (residuals in units of sigma); correlation: of the fitted variables.
+std::vector<std::string> describe_identifiability(const std::vector<std::string>& names, const Eigen::MatrixXd& Jd,
+                                                  const Eigen::MatrixXd& correlation);
+
 /// Summarizes one design against the measurement (sigma per measured point for chi2).
 FitSummary summarize(const TurnPatternResult& r, const std::vector<double>& sigma_mm);
 
