@@ -24,7 +24,7 @@ struct LocalSearchSettings {
   /// (u - u_start) / weak_prior_range, u the variable scaled to its bounds. Directions the
   /// data do not determine then stay put instead of drifting to a bound; a determined
   /// direction's residuals outweigh it. 0: none.
-  double weak_prior_range = 1.0;
+  double weak_prior_range = 0.1;
   /// The residual [mm] given to a measured turn the design does not reach (or reaches under
   /// another number): finite, so a failed design steers the fit away instead of stopping it.
   /// 0: 10 mm or twice the start's worst turn, whichever is larger.

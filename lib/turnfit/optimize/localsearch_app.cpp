@@ -50,7 +50,7 @@ void add_localsearch_options(CLI::App& app, LocalSearchOptions& o) {
                  "How far [mm] a polish step may raise the 2nd or 3rd largest error or the weighted l2 (default 0.01)")
       ->check(CLI::Range(0.0, 1e6));
   app.add_option("--weak-prior", o.settings.weak_prior_range,
-                 "Width of the weak prior toward the start, in bound ranges (default 1; 0: none)")
+                 "Width of the weak prior toward the start, in bound ranges (default 0.1; 0: none)")
       ->check(CLI::Range(0.0, 1e6));
   cli::add_common_options(app, o.common, cli::kOutput | cli::kThreads);
 }
