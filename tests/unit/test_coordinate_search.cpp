@@ -8,6 +8,7 @@
 #include <limits>
 
 #include "../support.hpp"
+#include "ring8_problem.hpp"
 #include "turnfit/machine/machine.hpp"
 #include "turnfit/optimize/coordinate_search.hpp"
 #include "turnfit/optimize/problem_file.hpp"
@@ -17,34 +18,11 @@
 
 using namespace turnfit;
 using turnfit::test::TempDir;
+using turnfit::test::load_turn_problem;
+using turnfit::test::ring8;
+using turnfit::test::turns_as_peaks;
 
 namespace {
-
-std::string ring8(const std::string& file) { return std::string(TURNFIT_TEST_DIR) + "/../share/turnfit/ring8/" + file; }
-
-/// A machine's own turns as a peaks file (17 digits: the machine itself matches exactly).
-std::string turns_as_peaks(const Machine& m, const TempDir& tmp, const std::string& name) {
-  const TrackModel model = make_track_model(m);
-  std::vector<TurnRecord> turns;
-  track_particle(model, injection_state(effective_injection(m), m.particle.mass_MeV), machine_track_settings(m),
-                 turns);
-  std::string csv = "probe,turn,r_mm,height,area,width_mm,flag\n";
-  char buf[160];
-  for (const auto& t : turns) {
-    std::snprintf(buf, sizeof buf, "%s,%d,%.17g,1,1,1,ok\n", model.probes[static_cast<size_t>(t.probe)].name.c_str(),
-                  t.turn, t.r_mm);
-    csv += buf;
-  }
-  return tmp.file(name, csv);
-}
-
-std::unique_ptr<TurnPatternProblem> load_turn_problem(const std::string& path) {
-  LoadedProblem lp = load_problem(path, "", -1);
-  auto* tp = dynamic_cast<TurnPatternProblem*>(lp.problem.get());
-  REQUIRE(tp != nullptr);
-  lp.problem.release();
-  return std::unique_ptr<TurnPatternProblem>(tp);
-}
 
 /// A ring8 problem over `names` whose measurement is ring8 tracked with each variable moved by
 /// frac[j] of its bound range (noiseless, 17 digits). xt receives the truth.
@@ -136,7 +114,6 @@ TEST_CASE("coordinate search: a step that lowers l2 but worsens one norm by more
   nan.wl2_mm = 0;
   CHECK_FALSE(coordinate_accepts(cur, nan, tol, eps));
 }
-
 
 namespace {
 

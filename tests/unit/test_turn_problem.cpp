@@ -9,6 +9,7 @@
 #include <stdexcept>
 
 #include "../support.hpp"
+#include "ring8_problem.hpp"
 #include "turnfit/io/parallel.hpp"
 #include "turnfit/machine/machine.hpp"
 #include "turnfit/optimize/nsga2.hpp"
@@ -20,26 +21,11 @@
 
 using namespace turnfit;
 using turnfit::test::TempDir;
+using turnfit::test::load_turn_problem;
+using turnfit::test::ring8;
+using turnfit::test::turns_as_peaks;
 
 namespace {
-
-std::string ring8(const std::string& file) { return std::string(TURNFIT_TEST_DIR) + "/../share/turnfit/ring8/" + file; }
-
-/// A machine's own turns as a peaks file (17 digits, so a problem at the machine matches exactly).
-std::string turns_as_peaks(const Machine& m, const TempDir& tmp, const std::string& name) {
-  const TrackModel model = make_track_model(m);
-  std::vector<TurnRecord> turns;
-  track_particle(model, injection_state(effective_injection(m), m.particle.mass_MeV), machine_track_settings(m),
-                 turns);
-  std::string csv = "probe,turn,r_mm,height,area,width_mm,flag\n";
-  char buf[160];
-  for (const auto& t : turns) {
-    std::snprintf(buf, sizeof buf, "%s,%d,%.17g,1,1,1,ok\n", model.probes[static_cast<size_t>(t.probe)].name.c_str(),
-                  t.turn, t.r_mm);
-    csv += buf;
-  }
-  return tmp.file(name, csv);
-}
 
 /// The nominal ring8 machine's own turns as a peaks file: the problem's start then matches exactly.
 std::string nominal_peaks(const TempDir& tmp) { return turns_as_peaks(load_machine(ring8("machine.json")), tmp, "peaks.csv"); }
@@ -47,14 +33,6 @@ std::string nominal_peaks(const TempDir& tmp) { return turns_as_peaks(load_machi
 std::string problem_text(const std::string& peaks, const std::string& variables, const std::string& extra = "") {
   return "{\"format\": \"turnfit-problem/1\", \"machine\": \"" + ring8("machine.json") + "\", \"peaks\": \"" + peaks +
          "\", \"variables\": " + variables + extra + "}";
-}
-
-std::unique_ptr<TurnPatternProblem> load_turn_problem(const std::string& path) {
-  LoadedProblem lp = load_problem(path, "", -1);
-  auto* tp = dynamic_cast<TurnPatternProblem*>(lp.problem.get());
-  REQUIRE(tp != nullptr);
-  lp.problem.release();
-  return std::unique_ptr<TurnPatternProblem>(tp);
 }
 
 }  // namespace

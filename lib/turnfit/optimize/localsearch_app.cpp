@@ -186,16 +186,23 @@ nlohmann::json summary_json(const TurnPatternProblem& p, const FitSummary& f, do
   return j;
 }
 
-}  // namespace
-
-nlohmann::json localsearch_report(const TurnPatternProblem& p, const LocalSearchResult& r, const std::string& start,
-                                  bool provenance, double tolerance_mm) {
+/// What every report starts with: format, provenance, problem, method, start.
+nlohmann::json report_head(const TurnPatternProblem& p, const std::string& method, const std::string& start,
+                           bool provenance) {
   nlohmann::json j;
   j["format"] = "turnfit-localsearch/1";
   if (provenance) j["provenance"] = cli::provenance();
   j["problem"] = p.file();
-  j["method"] = "lm";
+  j["method"] = method;
   j["start"] = start.empty() ? "the machine's values" : shown(start);
+  return j;
+}
+
+}  // namespace
+
+nlohmann::json localsearch_report(const TurnPatternProblem& p, const LocalSearchResult& r, const std::string& start,
+                                  bool provenance, double tolerance_mm) {
+  nlohmann::json j = report_head(p, "lm", start, provenance);
   nlohmann::json sg = nlohmann::json::object();
   for (size_t q = 0; q < r.sigma_probes.size(); ++q) sg[r.sigma_probes[q]] = jnum(r.sigma_mm[q]);
   j["sigma_mm"] = {{"source", r.sigma_source}, {"per_probe", sg}};
@@ -248,12 +255,7 @@ nlohmann::json localsearch_report(const TurnPatternProblem& p, const LocalSearch
 
 nlohmann::json coordinate_report(const TurnPatternProblem& p, const CoordinateResult& r, const std::string& start,
                                  bool provenance) {
-  nlohmann::json j;
-  j["format"] = "turnfit-localsearch/1";
-  if (provenance) j["provenance"] = cli::provenance();
-  j["problem"] = p.file();
-  j["method"] = "coordinate";
-  j["start"] = start.empty() ? "the machine's values" : shown(start);
+  nlohmann::json j = report_head(p, "coordinate", start, provenance);
   j["before"] = summary_json(p, r.before, std::nan(""));
   j["after"] = summary_json(p, r.after, std::nan(""));
   auto norms = [](const CoordinateNorms& n) {
