@@ -75,9 +75,9 @@ ProbeProfile read_profile(const std::string& path) {
 }
 
 std::string peak_flag_string(unsigned flags) {
-  static const char* const names[] = {"merged", "wide", "weak", "gap", "edge"};
+  static const char* const names[] = {"merged", "wide", "weak", "gap", "edge", "ambiguous", "cross"};
   std::string s;
-  for (unsigned b = 0; b < 5; ++b)
+  for (unsigned b = 0; b < 7; ++b)
     if (flags & (1u << b)) s += (s.empty() ? "" : "+") + std::string(names[b]);
   return s.empty() ? "ok" : s;
 }
@@ -407,6 +407,462 @@ double expected_separation(const std::vector<Gauss>& g, size_t i) {
   return intervals >= 2 ? span / intervals : 0;
 }
 
+// ---------------------------------------------------------------------------------------------
+// Turn numbering
+
+/// Position against turn index near an interval: the beam-centring model of ../shared/docs/
+/// physics.md (r_n = r_0 + <dr/dn> n + A sin(2 pi nu_r n + phi) over a short range of turns, a
+/// coherent betatron oscillation about the accelerated orbit, the paper's Figs. 6-7), with a
+/// quadratic trend (the radius gain per turn changes with energy) and a phase advance per turn
+/// that drifts linearly (nu_r changes with energy):
+///   r(t) = c0 + c1 v + c2 v^2 + c3 cos(phi) + c4 sin(phi),  u = t - tc, v = u / h,
+///   phi = mu u + kappa u^2 / 2.
+/// A probe sees each turn once, so only mu = 2 pi nu_r modulo 2 pi shows, folded into (0, pi].
+struct TurnModel {
+  double rss = 1e300, mu = 0, kappa = 0;
+  double c[5] = {0, 0, 0, 0, 0};
+};
+
+/// The peaks of one window: turn index t (relative), position r (less a reference), weight w.
+struct TurnWindow {
+  std::vector<double> t, r, w;
+  double tc = 0, h = 1;
+
+  // The sums over the window that do not depend on (mu, kappa): the trend columns 1, v, v^2.
+  double p_[3][3] = {}, bp_[3] = {}, rr_ = 0;
+  std::vector<double> v_;
+
+  /// Computes the trend sums; call after t, r, w, tc and h are set.
+  void prepare() {
+    v_.resize(t.size());
+    for (auto& row : p_) std::fill(std::begin(row), std::end(row), 0.0);
+    std::fill(std::begin(bp_), std::end(bp_), 0.0);
+    rr_ = 0;
+    for (size_t i = 0; i < t.size(); ++i) {
+      const double v = (t[i] - tc) / h, f[3] = {1, v, v * v};
+      v_[i] = v;
+      for (int a = 0; a < 3; ++a) {
+        for (int b = 0; b < 3; ++b) p_[a][b] += w[i] * f[a] * f[b];
+        bp_[a] += w[i] * r[i] * f[a];
+      }
+      rr_ += w[i] * r[i] * r[i];
+    }
+  }
+
+  /// Linear least squares of the five coefficients, given cos and sin of the phase at each peak
+  /// (normal equations, Cholesky); returns the weighted rss. The positions are relative to a peak
+  /// of the window, so that sum w r^2 - c.b keeps the digits that matter.
+  double solve(const double* cph, const double* sph, TurnModel& m) const {
+    double a[5][5], b[5];
+    for (int i = 0; i < 3; ++i) {
+      for (int j = 0; j < 3; ++j) a[i][j] = p_[i][j];
+      b[i] = bp_[i];
+    }
+    double sc[3] = {0, 0, 0}, ss[3] = {0, 0, 0}, scc = 0, sss = 0, scs = 0, src = 0, srs = 0;
+    for (size_t i = 0; i < t.size(); ++i) {
+      const double wc = w[i] * cph[i], ws = w[i] * sph[i], v = v_[i];
+      sc[0] += wc;
+      sc[1] += wc * v;
+      sc[2] += wc * v * v;
+      ss[0] += ws;
+      ss[1] += ws * v;
+      ss[2] += ws * v * v;
+      scc += wc * cph[i];
+      sss += ws * sph[i];
+      scs += wc * sph[i];
+      src += wc * r[i];
+      srs += ws * r[i];
+    }
+    for (int i = 0; i < 3; ++i) {
+      a[i][3] = a[3][i] = sc[i];
+      a[i][4] = a[4][i] = ss[i];
+    }
+    a[3][3] = scc;
+    a[4][4] = sss;
+    a[3][4] = a[4][3] = scs;
+    b[3] = src;
+    b[4] = srs;
+    // A column that vanishes on the turns (sin(pi u) at whole turns) or repeats another (a slow
+    // cosine against the quadratic) gets no weight instead of an arbitrary one.
+    double trace = 0;
+    for (int i = 0; i < 5; ++i) trace += a[i][i];
+    const double ridge = 1e-10 * trace / 5 + 1e-300;
+    double l[5][5] = {}, y[5], c[5];
+    for (int i = 0; i < 5; ++i) {
+      for (int j = 0; j <= i; ++j) {
+        double sum = a[i][j] + (i == j ? ridge : 0);
+        for (int k = 0; k < j; ++k) sum -= l[i][k] * l[j][k];
+        l[i][j] = i == j ? std::sqrt(std::max(sum, ridge)) : sum / l[j][j];
+      }
+    }
+    for (int i = 0; i < 5; ++i) {
+      double sum = b[i];
+      for (int k = 0; k < i; ++k) sum -= l[i][k] * y[k];
+      y[i] = sum / l[i][i];
+    }
+    for (int i = 4; i >= 0; --i) {
+      double sum = y[i];
+      for (int k = i + 1; k < 5; ++k) sum -= l[k][i] * c[k];
+      c[i] = sum / l[i][i];
+    }
+    double cb = 0;
+    for (int i = 0; i < 5; ++i) {
+      m.c[i] = std::isfinite(c[i]) ? c[i] : 0;
+      cb += m.c[i] * b[i];
+    }
+    // At the least-squares solution c.A.c = c.b: rss = r.r - c.b.
+    m.rss = std::max(0.0, rr_ - cb);
+    return m.rss;
+  }
+
+  /// The least-squares coefficients for one (mu, kappa); returns the weighted rss.
+  double fit(TurnModel& m) const {
+    std::vector<double> cph(t.size()), sph(t.size());
+    for (size_t i = 0; i < t.size(); ++i) {
+      const double u = t[i] - tc, ph = m.mu * u + 0.5 * m.kappa * u * u;
+      cph[i] = std::cos(ph);
+      sph[i] = std::sin(ph);
+    }
+    return solve(cph.data(), sph.data(), m);
+  }
+
+  /// The best model: a grid over mu in (0, pi] and kappa in [-0.04, 0.04] per turn (nu_r may
+  /// change by up to 0.0064 a turn; ring8's changes by 0.0036), then a pattern search from the two
+  /// best grid points. Over +-12 turns the grid's half steps leave at most 0.4 rad of phase error
+  /// for the search to take out.
+  TurnModel best() const {
+    constexpr int n_mu = 48, n_kappa = 9;
+    constexpr double kappa_max = 0.04;
+    const double d_mu = M_PI / n_mu, d_kappa = 2 * kappa_max / (n_kappa - 1);
+    const size_t np = t.size();
+    // cos and sin of mu u and of kappa u^2 / 2 on the grid, combined by the angle-sum formulas.
+    std::vector<double> cm(n_mu * np), sm(n_mu * np), ck(n_kappa * np), sk(n_kappa * np), cph(np), sph(np);
+    for (int i = 0; i < n_mu; ++i)
+      for (size_t k = 0; k < np; ++k) {
+        const double ph = (i + 1) * d_mu * (t[k] - tc);
+        cm[i * np + k] = std::cos(ph);
+        sm[i * np + k] = std::sin(ph);
+      }
+    for (int j = 0; j < n_kappa; ++j)
+      for (size_t k = 0; k < np; ++k) {
+        const double u = t[k] - tc, ph = 0.5 * (-kappa_max + j * d_kappa) * u * u;
+        ck[j * np + k] = std::cos(ph);
+        sk[j * np + k] = std::sin(ph);
+      }
+    TurnModel best1, best2;
+    for (int i = 0; i < n_mu; ++i)
+      for (int j = 0; j < n_kappa; ++j) {
+        for (size_t k = 0; k < np; ++k) {
+          const double c1 = cm[i * np + k], s1 = sm[i * np + k], c2 = ck[j * np + k], s2 = sk[j * np + k];
+          cph[k] = c1 * c2 - s1 * s2;
+          sph[k] = s1 * c2 + c1 * s2;
+        }
+        TurnModel m;
+        m.mu = (i + 1) * d_mu;
+        m.kappa = -kappa_max + j * d_kappa;
+        solve(cph.data(), sph.data(), m);
+        if (m.rss < best1.rss) {
+          best2 = best1;
+          best1 = m;
+        } else if (m.rss < best2.rss) {
+          best2 = m;
+        }
+      }
+    TurnModel out = best1;
+    for (TurnModel m : {best1, best2}) {
+      if (!(m.rss < 1e299)) continue;
+      double step_mu = 0.5 * d_mu, step_kappa = 0.5 * d_kappa;
+      for (int it = 0; it < 40 && step_mu > 1e-3 * d_mu; ++it) {
+        bool moved = false;
+        for (int k = 0; k < 4; ++k) {
+          TurnModel trial = m;
+          trial.mu = std::clamp(m.mu + (k == 0 ? step_mu : k == 1 ? -step_mu : 0), 1e-3, M_PI);
+          trial.kappa = std::clamp(m.kappa + (k == 2 ? step_kappa : k == 3 ? -step_kappa : 0), -kappa_max, kappa_max);
+          fit(trial);
+          if (trial.rss < m.rss) {
+            m = trial;
+            moved = true;
+          }
+        }
+        if (!moved) {
+          step_mu *= 0.5;
+          step_kappa *= 0.5;
+        }
+      }
+      if (m.rss < out.rss) out = m;
+    }
+    return out;
+  }
+};
+
+/// Turn numbers of the peaks (turnfit-peakfind(1), "Numbering and flags"): how many turns are
+/// missing before each peak, and the flags and doubts of the numbering.
+struct Numbering {
+  std::vector<int> missing;       ///< turns missing between peak j-1 and peak j
+  std::vector<unsigned> flags;    ///< kPeakGap, kPeakAmbiguous, kPeakCross per peak
+  std::vector<NumberingDoubt> doubts;
+  int model_judged = 0;             ///< intervals the position model had to judge
+};
+
+/// Fewest peaks for the numbering below (fewer: the gap-ratio rule); intervals on each side
+/// whose lengths make the envelope; peaks on each side that the position model sees.
+constexpr size_t kNumberingMinPeaks = 12, kEnvelopeReach = 8, kModelReach = 12;
+/// How far, in trend separations, an interval may lie outside the envelope of its count of turns
+/// (position errors of merged turns, an oscillation that grows within the window).
+constexpr double kLengthSlack = 0.2;
+/// A count of missing turns is decided when every other count leaves kDecide times the residual
+/// variance more (a likelihood ratio of 25: "5 sigma"); the variance is at least
+/// (kModelFloor D)^2, D the trend separation.
+constexpr double kDecide = 25, kModelFloor = 0.005;
+/// The swing of the separation, in trend separations, from which turns may cross, measured over
+/// kSwingReach intervals on each side.
+constexpr double kCrossStart = 0.85;
+constexpr size_t kSwingReach = 3;
+
+/// What lengths k consecutive one-turn intervals take near an interval (k = 1, 2, 3), in trend
+/// separations: the betatron oscillation's swing, measured rather than modelled.
+struct Envelope {
+  double lo[4] = {0, 1e300, 1e300, 1e300}, hi[4] = {0, -1e300, -1e300, -1e300};
+  int count[4] = {0, 0, 0, 0};
+  double half = 0;  ///< largest distance of a measured length from k, any k
+
+  void add(int k, double len) {
+    lo[k] = std::min(lo[k], len);
+    hi[k] = std::max(hi[k], len);
+    ++count[k];
+    half = std::max(half, std::abs(len - k));
+  }
+  /// Whether an interval of length q may span c turns (c = 1, 1.5, 2, ...).
+  bool allows(double c, double q) const {
+    const int k = static_cast<int>(std::lround(c));
+    if (std::abs(c - k) < 1e-9 && k >= 1 && k <= 3 && count[k] >= 2)
+      return q >= lo[k] - kLengthSlack && q <= hi[k] + kLengthSlack;
+    return std::abs(q - c) <= half + kLengthSlack;
+  }
+  /// The separation's swing: how far one-turn intervals reach from the trend.
+  double swing() const { return count[1] > 0 ? std::max(hi[1] - 1, 1 - lo[1]) : 0; }
+};
+
+Numbering number_turns(const std::vector<Gauss>& g, const PeakSettings& s) {
+  const size_t n = g.size();
+  Numbering out;
+  out.missing.assign(n, 0);
+  out.flags.assign(n, 0);
+  if (n < 2) return out;
+
+  // Too few peaks to measure the oscillation: the gap-ratio rule on the mean separation.
+  if (n < kNumberingMinPeaks) {
+    for (size_t j = 1; j < n; ++j) {
+      const double de = mean_separation(g, j - 1), gap = g[j].mu - g[j - 1].mu, steps = turn_steps(g, j - 1);
+      if (s.gap_ratio > 0 && de > 0 && gap >= s.gap_ratio * de * steps) {
+        out.missing[j] = std::max(1, static_cast<int>(std::lround(gap / de - steps)));
+        out.flags[j] |= kPeakGap;
+      }
+    }
+    return out;
+  }
+
+  // The trend at interval j (peaks j-1, j): the radius gain per turn over up to 13 intervals
+  // centred on it, the turns counted as numbered so far. A mean over several turns, not a
+  // median: the oscillation averages out of the radius gained. The interval itself stays in:
+  // leaving it out biases the trend against it (a long interval's trend comes out short) by up
+  // to 2 A / 12, which made a 25.7 mm interval 1.9 trends long where it is 1.6.
+  auto trend = [&](size_t j) {
+    const size_t lo = j >= 7 ? j - 7 : 0, hi = std::min(n - 1, j + 6);
+    double turns = 0;
+    for (size_t q = lo; q < hi; ++q) turns += turn_steps(g, q) + out.missing[q + 1];
+    return turns >= 2 ? (g[hi].mu - g[lo].mu) / turns : 0.0;
+  };
+  // The tapered least-squares misfit of the peaks around interval j (peaks j-1, j) to one
+  // TurnModel, the turns numbered with `counts` missing turns; wsum: the sum of the weights.
+  auto model_rss = [&](size_t j, const std::vector<int>& counts, double& wsum) {
+    std::vector<double> t(n, 0);
+    for (size_t i = 1; i < n; ++i) t[i] = t[i - 1] + turn_steps(g, i - 1) + counts[i];
+    const size_t a = j >= kModelReach ? j - kModelReach : 0, b = std::min(n, j + kModelReach);
+    TurnWindow win;
+    wsum = 0;
+    for (size_t i = a; i < b; ++i) {
+      win.t.push_back(t[i] - t[j]);
+      win.r.push_back(g[i].mu - g[j].mu);
+      // Weights taper with the distance from the interval (Epanechnikov), so that what the
+      // model cannot follow far away counts less than the turns beside the gap; a peak of k
+      // turns sits at their mean and counts a quarter.
+      const double d = (static_cast<double>(i) - (static_cast<double>(j) - 0.5)) / (kModelReach + 0.5);
+      win.w.push_back((1 - d * d) * (g[i].turns > 1 ? 0.25 : 1.0));
+      wsum += win.w.back();
+    }
+    win.h = std::max(1.0, 0.5 * (win.t.back() - win.t.front()));
+    win.tc = 0.5 * (win.t.front() + win.t.back());
+    win.prepare();
+    return win.best().rss;
+  };
+  std::vector<int> alt(n, -1);
+  std::vector<double> swing(n, 0);
+  std::vector<char> modelled(n, 0);
+  for (int pass = 0; pass < 4; ++pass) {
+    bool changed = false;
+    std::vector<double> len(n, 0);  // interval lengths in trend separations
+    for (size_t i = 1; i < n; ++i) {
+      const double de = trend(i);
+      len[i] = de > 0 ? (g[i].mu - g[i - 1].mu) / de : 0;
+    }
+    // A one-turn interval: between two single turns, no turn missing in it.
+    auto single = [&](size_t i) {
+      return i >= 1 && i < n && g[i - 1].turns == 1 && g[i].turns == 1 && out.missing[i] == 0 && len[i] > 0;
+    };
+    for (size_t j = 1; j < n; ++j) {
+      const double de = trend(j);
+      if (!(de > 0)) continue;
+      // The envelope of the lengths of 1, 2 and 3 consecutive one-turn intervals near j.
+      Envelope env;
+      const size_t lo = j > kEnvelopeReach ? j - kEnvelopeReach : 1, hi = std::min(n - 1, j + kEnvelopeReach);
+      for (size_t i = lo; i <= hi; ++i) {
+        double sum = 0;
+        for (int k = 1; k <= 3 && i + static_cast<size_t>(k) - 1 <= hi; ++k) {
+          const size_t e = i + static_cast<size_t>(k) - 1;
+          if (e == j || !single(e)) break;
+          sum += len[e];
+          env.add(k, sum);
+        }
+      }
+      // The swing where turns may cross is a local property: the one-turn intervals within
+      // kSwingReach of j (about a period of the oscillation for nu_r - 1 above 0.15). The turns
+      // of a peak the fit could not split are within about its width of each other.
+      {
+        Envelope near;
+        for (size_t i = j > kSwingReach ? j - kSwingReach : 1; i <= std::min(n - 1, j + kSwingReach); ++i) {
+          if (single(i)) near.add(1, len[i]);
+          if (g[i].turns > 1) near.add(1, g[i].sigma / de);
+        }
+        swing[j] = near.swing();
+      }
+      // The counts of missing turns the interval's length allows. A gap holds missing turns only
+      // when the data say so: where the envelope allows no count but none, the interval is one
+      // turn; else the position model decides between none and the counts the envelope allows
+      // (or, if it allows none at all, the counts around the length).
+      const double steps = turn_steps(g, j - 1);
+      const double longest = len[j] - steps + env.half + kLengthSlack;  // most missing turns the length allows
+      const int m_max = s.gap_ratio > 0 ? std::clamp(static_cast<int>(std::ceil(longest)), 0, 60) : 0;
+      std::vector<int> cand{0};
+      for (int m = 1; m <= m_max; ++m)
+        if (env.allows(steps + m, len[j])) cand.push_back(m);
+      if (cand.size() == 1 && !env.allows(steps, len[j])) {
+        const int near = std::clamp(static_cast<int>(std::lround(len[j] - steps)), 0, m_max);
+        for (int m = std::max(1, near - 1); m <= std::min(m_max, near + 1); ++m) cand.push_back(m);
+      }
+      int used = cand.front();
+      alt[j] = -1;
+      modelled[j] = cand.size() > 1;
+      if (cand.size() > 1) {
+        // Peaks on both sides on one model of position against turn (TurnModel), once per count:
+        // the counts that leave about the least residual fit; the smallest of them is used.
+        std::vector<double> rss;
+        double wsum = 0;
+        for (int m : cand) {
+          std::vector<int> counts = out.missing;
+          counts[j] = m;
+          rss.push_back(model_rss(j, counts, wsum));
+        }
+        const size_t best = static_cast<size_t>(std::min_element(rss.begin(), rss.end()) - rss.begin());
+        const double floor = kModelFloor * de;
+        const double var = std::max(rss[best] / std::max(1.0, wsum - 7), floor * floor);
+        size_t u = best;
+        for (size_t c = 0; c < best; ++c)
+          if (rss[c] - rss[best] < kDecide * var) {
+            u = c;
+            break;
+          }
+        used = cand[u];
+        // The doubt: the best other count within the margin.
+        size_t other = cand.size();
+        for (size_t c = 0; c < cand.size(); ++c)
+          if (c != u && rss[c] - rss[best] < kDecide * var && (other == cand.size() || rss[c] < rss[other])) other = c;
+        if (other < cand.size()) alt[j] = cand[other];
+      }
+      if (used != out.missing[j]) {
+        out.missing[j] = used;
+        changed = true;
+      }
+    }
+    if (!changed) break;
+  }
+  // One interval at a time, a gap can settle an interval or two off its place (the turns beside
+  // it fit almost as well either way, and moving it changes two counts at once): each gap is
+  // tried at the intervals around it, the other counts held, and goes where the peaks fit best
+  // by the decision margin. Where another place fits within the margin, the numbers of the
+  // peaks between the two places are doubtful.
+  for (size_t j = 1; j < n && s.gap_ratio > 0; ++j) {
+    if (out.missing[j] == 0) continue;
+    const int m = out.missing[j];
+    std::vector<size_t> places;
+    std::vector<double> rss;
+    double wsum = 0;
+    for (size_t c = j > 2 ? j - 2 : 1; c <= std::min(n - 1, j + 2); ++c) {
+      if (c != j && out.missing[c] != 0) continue;
+      std::vector<int> counts = out.missing;
+      counts[j] = 0;
+      counts[c] = m;
+      places.push_back(c);
+      rss.push_back(model_rss(j, counts, wsum));
+    }
+    const size_t best = static_cast<size_t>(std::min_element(rss.begin(), rss.end()) - rss.begin());
+    const size_t here = static_cast<size_t>(std::find(places.begin(), places.end(), j) - places.begin());
+    const double floor = kModelFloor * trend(j);
+    const double margin = kDecide * std::max(rss[best] / std::max(1.0, wsum - 7), floor * floor);
+    const size_t u = rss[here] - rss[best] >= margin ? places[best] : j;
+    out.missing[j] = 0;
+    out.missing[u] = m;
+    for (size_t c = 0; c < places.size(); ++c)
+      if (places[c] != u && rss[c] - rss[best] < margin) {
+        NumberingDoubt d;
+        d.kind = NumberingDoubt::kGapPlace;
+        d.first = std::min(places[c], u);
+        d.last = std::max(places[c], u) - 1;
+        d.missing = m;
+        d.alternative = static_cast<int>(places[c]);
+        out.doubts.push_back(d);
+        for (size_t i = d.first; i <= d.last; ++i) out.flags[i] |= kPeakAmbiguous;
+      }
+    j = std::max(j, u);
+  }
+  bool touching = false;
+  for (size_t j = 1; j < n; ++j) {
+    out.model_judged += modelled[j];
+    if (out.missing[j] > 0) out.flags[j] |= kPeakGap;
+    if (alt[j] >= 0) {
+      out.flags[j] |= kPeakAmbiguous;
+      NumberingDoubt d;
+      d.kind = NumberingDoubt::kAmbiguousGap;
+      d.first = d.last = j;
+      d.missing = out.missing[j];
+      d.alternative = alt[j];
+      out.doubts.push_back(d);
+    }
+    // Turns that may cross: once the oscillation brings turns within 0.15 trend separations of
+    // each other, the profile cannot tell whether they went on to cross: sorted by position,
+    // crossed turns look like a weaker oscillation (on ring8's crossing profiles the swing fell
+    // from 1.2 to 0.15 of the trend where turns had crossed), so the doubt lasts to the end.
+    touching = touching || swing[j] >= kCrossStart;
+    if (touching) {
+      out.flags[j - 1] |= kPeakCross;
+      out.flags[j] |= kPeakCross;
+    }
+  }
+  // Runs of crossing peaks as one doubt each.
+  for (size_t i = 0; i < n; ++i) {
+    if (!(out.flags[i] & kPeakCross)) continue;
+    NumberingDoubt d;
+    d.kind = NumberingDoubt::kCross;
+    d.first = i;
+    while (i + 1 < n && (out.flags[i + 1] & kPeakCross)) ++i;
+    d.last = i;
+    out.doubts.push_back(d);
+  }
+  std::stable_sort(out.doubts.begin(), out.doubts.end(),
+                   [](const NumberingDoubt& x, const NumberingDoubt& y) { return x.first < y.first; });
+  return out;
+}
+
 }  // namespace
 
 PeakResult find_peaks(const std::vector<double>& x, const std::vector<double>& y, const PeakSettings& s,
@@ -632,26 +1088,19 @@ PeakResult find_peaks(const std::vector<double>& x, const std::vector<double>& y
   std::vector<double> area(g.size());
   for (size_t i = 0; i < g.size(); ++i) area[i] = g[i].a * g[i].sigma / g[i].turns;
   const double median_area = median(area);
+  const Numbering numbering = number_turns(g, s);
+  out.model_judged = numbering.model_judged;
+  out.doubts = numbering.doubts;
   int turn = first_turn;
   for (size_t i = 0; i < g.size(); ++i) {
     Gauss& gi = g[i];
     const double na = std::min(neighbour_median(area, i, 6), median_area);
     if (gi.a < 2 * s.min_height * out.scale || (na > 0 && area[i] < 0.5 * na)) gi.flags |= kPeakWeak;
     if (gi.mu - 3 * gi.sigma < x.front() || gi.mu + 3 * gi.sigma > x.back()) gi.flags |= kPeakEdge;
-    if (i > 0) {
-      // A peak of k unresolved turns stands for k turn numbers.
-      turn += g[i - 1].turns;
-      // A gap: this interval much longer than the mean around it (the gap itself left out).
-      const double de = mean_separation(g, i - 1);
-      const double gap = gi.mu - g[i - 1].mu;
-      const double steps = turn_steps(g, i - 1);
-      if (s.gap_ratio > 0 && de > 0 && gap >= s.gap_ratio * de * steps) {
-        const int missing = std::max(1, static_cast<int>(std::lround(gap / de - steps)));
-        gi.flags |= kPeakGap;
-        turn += missing;
-        out.skipped_turns += missing;
-      }
-    }
+    gi.flags |= numbering.flags[i];
+    // A peak of k unresolved turns stands for k turn numbers; a gap skips the missing turns'.
+    if (i > 0) turn += g[i - 1].turns + numbering.missing[i];
+    out.skipped_turns += numbering.missing[i];
     Peak pk;
     pk.turn = turn;
     pk.r_mm = gi.mu;

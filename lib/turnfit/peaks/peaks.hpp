@@ -33,7 +33,7 @@ struct PeakSettings {
   double min_slope = 0.002;    ///< steepest smoothed flank, in P per mm
   bool split = true;           ///< fit k turns into a peak of k turns' area (else flag it wide)
   double split_area = 1.5;     ///< a peak with this many times its neighbours' area holds more than one turn (0: never split)
-  double gap_ratio = 1.8;      ///< a separation this many times the expected one skips turn numbers (0: never)
+  double gap_ratio = 1.8;      ///< 0: never skip turn numbers; else, under 12 peaks, this many mean separations skip numbers
   bool centroid = true;        ///< report the deblended centroid (false: the fitted centre)
 };
 
@@ -44,9 +44,11 @@ enum PeakFlag : unsigned {
   kPeakWeak = 1u << 2,    ///< small: below 2x the height threshold or half its neighbours' area
   kPeakGap = 1u << 3,     ///< first peak after a gap of about n expected separations (n-1 turns skipped)
   kPeakEdge = 1u << 4,    ///< within 3 widths of the end of the profile (partly outside)
+  kPeakAmbiguous = 1u << 5,  ///< after a gap whose count (or place) of missing turns the data cannot decide
+  kPeakCross = 1u << 6,      ///< from where turns first touch (0.15 trend separations) on: they may cross
 };
 
-/// "ok", or the flags' names joined by '+' (merged, wide, weak, gap, edge).
+/// "ok", or the flags' names joined by '+' (merged, wide, weak, gap, edge, ambiguous, cross).
 std::string peak_flag_string(unsigned flags);
 
 /// One detected turn.
@@ -58,6 +60,20 @@ struct Peak {
   double area = 0;        ///< fitted area above the baseline (intensity * mm)
   double width_mm = 0;    ///< fitted rms width
   unsigned flags = 0;     ///< PeakFlag bits
+};
+
+/// A place where the turn numbering cannot be trusted (turnfit-peakfind(1), "Numbering").
+struct NumberingDoubt {
+  enum Kind {
+    kAmbiguousGap,  ///< the gap before peak `first` fits `missing` or `alternative` missing turns alike
+    kGapPlace,      ///< a gap of `missing` turns fits as well elsewhere: peaks first-last may be off by that
+    kCross,         ///< peaks first-last: turns may cross (the numbering follows position)
+  };
+  Kind kind = kAmbiguousGap;
+  size_t first = 0;     ///< index into PeakResult::peaks of the first peak concerned
+  size_t last = 0;      ///< ... and of the last (inclusive)
+  int missing = 0;      ///< kAmbiguousGap: turns taken as missing before peak `first`; kGapPlace: the gap's count
+  int alternative = 0;  ///< kAmbiguousGap: the count that fits as well; kGapPlace: the peak after the other place
 };
 
 /// What a run found, with the numbers that explain it.
@@ -74,12 +90,17 @@ struct PeakResult {
   int dropped = 0;               ///< accepted candidates that the fit reduced to nothing
   int splits = 0;                ///< peaks split into k turns by the fit
   int skipped_turns = 0;         ///< turn numbers skipped at gaps
+  int model_judged = 0;          ///< intervals the position model had to judge (the envelope decided the rest)
+  std::vector<NumberingDoubt> doubts;  ///< where the numbering cannot be trusted, in order of position
 };
 
 /// Finds the turns of a profile (turnfit-peakfind(1), ALGORITHM): baseline, smoothed derivative
 /// zero-crossings with thresholds (the paper, Sec. "Peak detection of probe measurement"), a fit of
 /// Gaussian turn shapes (Levenberg-Marquardt) for grid-independent positions, splitting of wide
-/// peaks by the neighbours' width and separation, then flags and turn numbers.
+/// peaks by the neighbours' width and separation, then flags and turn numbers: a turn is missing
+/// only where the envelope of the oscillating separations and a model of position against turn
+/// (trend plus betatron oscillation) say so; doubts (ambiguous gaps, turns that may cross) are
+/// flagged and listed in `doubts`.
 /// EX_DATAERR if x and y differ in size, hold fewer than 5 readings or x is not increasing.
 PeakResult find_peaks(const std::vector<double>& x_mm, const std::vector<double>& y,
                       const PeakSettings& settings, int first_turn);

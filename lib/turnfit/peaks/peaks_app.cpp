@@ -3,6 +3,7 @@
 
 #include <cmath>
 #include <cstdio>
+#include <cstdlib>
 #include <filesystem>
 #include <nlohmann/json.hpp>
 
@@ -39,7 +40,8 @@ void add_peakfind_options(CLI::App& app, PeakfindOptions& o) {
       ->capture_default_str();
   app.add_flag("--no-split", o.no_split, "Never split a peak of several turns' area (flag it 'wide', count its turns)");
   app.add_option("--gap-ratio", o.settings.gap_ratio,
-                 "A separation this many times the expected one skips turn numbers (0: never)")
+                 "0: never skip turn numbers; else, in profiles of fewer than 12 peaks, a separation this many "
+                 "times the mean one skips turn numbers (12 or more: the separation envelope and model decide)")
       ->check(CLI::Range(0.0, 100.0))
       ->capture_default_str();
   app.add_option("--position", o.position, "Reported position: the fitted centre or the deblended centroid")
@@ -56,26 +58,74 @@ std::string stem_of(const std::string& path) {
   return std::filesystem::path(path).stem().string();
 }
 
+/// A radius for a message: mm to 0.01 mm.
+std::string mm(double r) {
+  char buf[40];
+  std::snprintf(buf, sizeof buf, "%.2f", r);
+  return buf;
+}
+
 bool valid_probe_name(const std::string& s) {
   return !s.empty() && s.find_first_of(",\"\r\n") == std::string::npos;
 }
 
 }  // namespace
 
+void warn_numbering_doubts(const cli::CommonOptions& common, const std::string& probe, const std::string& source,
+                           const PeakResult& r) {
+  constexpr size_t kMaxAmbiguous = 10;
+  size_t ambiguous = 0;
+  for (const auto& d : r.doubts) {
+    const Peak& a = r.peaks[d.first];
+    const Peak& b = r.peaks[d.last];
+    if (d.kind == NumberingDoubt::kAmbiguousGap) {
+      if (++ambiguous > kMaxAmbiguous) continue;
+      const int diff = std::abs(d.alternative - d.missing);
+      cli::warn(common, probe + " (" + source + "): turn " + std::to_string(a.turn) + " at r = " + mm(a.r_mm) +
+                            " mm: the gap before it fits " + std::to_string(d.missing) + " or " +
+                            std::to_string(d.alternative) + " missing turns alike; numbered with " +
+                            std::to_string(d.missing) + " (flag 'ambiguous'): this and later turn numbers may be " +
+                            (d.alternative > d.missing ? "short" : "over") + " by " + std::to_string(diff));
+    } else if (d.kind == NumberingDoubt::kGapPlace) {
+      const bool later = static_cast<size_t>(d.alternative) > d.first;
+      const Peak& other = r.peaks[static_cast<size_t>(d.alternative)];
+      cli::warn(common, probe + " (" + source + "): turns " + std::to_string(a.turn) +
+                            (d.last > d.first ? "-" + std::to_string(b.turn) : std::string()) + " (r = " +
+                            mm(a.r_mm) + (d.last > d.first ? " to " + mm(b.r_mm) : std::string()) +
+                            " mm): the " + std::to_string(d.missing) + " missing turn(s) before turn " +
+                            std::to_string(later ? a.turn : r.peaks[d.last + 1].turn) +
+                            " fit about as well before the peak at r = " +
+                            mm(later ? other.r_mm : a.r_mm) + " mm: these numbers may be " +
+                            (later ? "over" : "short") + " by " + std::to_string(d.missing) + " (flag 'ambiguous')");
+    } else {
+      cli::warn(common, probe + " (" + source + "): turns " + std::to_string(a.turn) + "-" + std::to_string(b.turn) +
+                            " (r = " + mm(a.r_mm) + " to " + mm(b.r_mm) +
+                            " mm) may cross: the betatron oscillation brings turns within 0.15 of their "
+                            "trend separation of each other from turn " + std::to_string(a.turn) +
+                            " on, and a profile cannot show their order; numbered in order of position (flag 'cross')");
+    }
+  }
+  if (ambiguous > kMaxAmbiguous)
+    cli::warn(common, probe + " (" + source + "): " + std::to_string(ambiguous - kMaxAmbiguous) +
+                          " more turns after gaps of ambiguous length (flag 'ambiguous')");
+}
+
 void write_peaks_csv(std::ostream& os, const std::string& probe, int first_turn, const PeakResult& r,
                      bool provenance) {
   if (provenance) os << cli::provenance_comment();
-  int merged = 0, flagged = 0;
+  int merged = 0, flagged = 0, ambiguous = 0, cross = 0;
   for (const auto& p : r.peaks) {
     merged += (p.flags & kPeakMerged) != 0;
     flagged += p.flags != 0;
+    ambiguous += (p.flags & kPeakAmbiguous) != 0;
+    cross += (p.flags & kPeakCross) != 0;
   }
-  char buf[512];
+  char buf[640];
   std::snprintf(buf, sizeof buf,
-                "# probe=%s first_turn=%d peaks=%zu merged=%d flagged=%d skipped_turns=%d smooth_mm=%.6g "
-                "baseline=%.6g%+.6g*(x-x0) noise=%.4g scale=%.6g candidates=%d rejected=%d dropped=%d\n",
-                probe.c_str(), first_turn, r.peaks.size(), merged, flagged, r.skipped_turns, r.smooth_mm,
-                r.baseline_at0, r.baseline_slope, r.noise, r.scale, r.candidates, r.rejected, r.dropped);
+                "# probe=%s first_turn=%d peaks=%zu merged=%d flagged=%d skipped_turns=%d ambiguous=%d cross=%d "
+                "smooth_mm=%.6g baseline=%.6g%+.6g*(x-x0) noise=%.4g scale=%.6g candidates=%d rejected=%d dropped=%d\n",
+                probe.c_str(), first_turn, r.peaks.size(), merged, flagged, r.skipped_turns, ambiguous, cross,
+                r.smooth_mm, r.baseline_at0, r.baseline_slope, r.noise, r.scale, r.candidates, r.rejected, r.dropped);
   os << buf << "probe,turn,r_mm,height,area,width_mm,flag\n";
   for (const auto& p : r.peaks) {
     std::snprintf(buf, sizeof buf, "%s,%d,%.6f,%.6g,%.6g,%.6f,%s\n", probe.c_str(), p.turn, p.r_mm, p.height, p.area,
@@ -102,6 +152,23 @@ void write_peaks_json(std::ostream& os, const std::string& probe, int first_turn
   doc["dropped"] = r.dropped;
   doc["splits"] = r.splits;
   doc["skipped_turns"] = r.skipped_turns;
+  doc["model_judged"] = r.model_judged;
+  json doubts = json::array();
+  for (const auto& d : r.doubts) {
+    const Peak& a = r.peaks[d.first];
+    const Peak& b = r.peaks[d.last];
+    if (d.kind == NumberingDoubt::kAmbiguousGap)
+      doubts.push_back({{"kind", "ambiguous"}, {"turn", a.turn}, {"r_mm", a.r_mm}, {"missing", d.missing},
+                        {"alternative", d.alternative}});
+    else if (d.kind == NumberingDoubt::kGapPlace)
+      doubts.push_back({{"kind", "gap_place"}, {"first_turn", a.turn}, {"last_turn", b.turn}, {"r_first_mm", a.r_mm},
+                        {"r_last_mm", b.r_mm}, {"missing", d.missing},
+                        {"other_place_r_mm", r.peaks[static_cast<size_t>(d.alternative)].r_mm}});
+    else
+      doubts.push_back({{"kind", "cross"}, {"first_turn", a.turn}, {"last_turn", b.turn}, {"r_first_mm", a.r_mm},
+                        {"r_last_mm", b.r_mm}});
+  }
+  doc["numbering_doubts"] = doubts;
   json arr = json::array();
   for (const auto& p : r.peaks)
     arr.push_back({{"turn", p.turn},
@@ -141,6 +208,7 @@ PeakResult peakfind(const ProbeProfile& profile, const PeakfindOptions& o, std::
   if (r.skipped_turns > 0)
     cli::warn(o.common, profile.name + ": " + std::to_string(r.skipped_turns) +
                             " turn number(s) skipped at gaps (flag 'gap'; --gap-ratio 0 numbers straight on)");
+  warn_numbering_doubts(o.common, probe, profile.name, r);
   if (o.common.format == "json")
     write_peaks_json(os, probe, first, r, !o.common.no_provenance);
   else

@@ -31,6 +31,12 @@ PeakResult peakfind(const ProbeProfile& profile, const PeakfindOptions& o, std::
 /// Runs turnfit-peakfind: reads the profile, writes the peaks atomically; returns the exit code.
 int run_peakfind(const PeakfindOptions& o);
 
+/// Warns on stderr (unless quiet) where the turn numbering cannot be trusted: each turn after a
+/// gap of ambiguous length (the first ten), and each run of turns that may cross; naming the
+/// probe, the input, the turn and its radius.
+void warn_numbering_doubts(const cli::CommonOptions& common, const std::string& probe, const std::string& source,
+                           const PeakResult& r);
+
 /// Writes peaks as CSV: probe,turn,r_mm,height,area,width_mm,flag (architecture.md's peaks table
 /// plus the flag), after '#' provenance and a '#' summary line.
 void write_peaks_csv(std::ostream& os, const std::string& probe, int first_turn, const PeakResult& r,
