@@ -132,7 +132,7 @@ TEST_CASE("profile figure: peaks sit on the profile, flagged apart, turns ticked
   REQUIRE(f.panels.size() == 1);
   CHECK(f.panels[0].title.find("RRI2") == 0);
   const Series* ok = find_series(f, 0, "peaks");
-  const Series* flagged = find_series(f, 0, "flagged peaks (merged, wide, weak, gap, edge)");
+  const Series* flagged = find_series(f, 0, "flagged peaks (merged, wide, weak, gap, edge, ambiguous, cross)");
   const Series* ticks = find_series(f, 0, "model");
   REQUIRE(ok);
   REQUIRE(flagged);

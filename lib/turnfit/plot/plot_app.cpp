@@ -207,7 +207,7 @@ Figure profile_figure(const PlotOptions& o) {
     flagged.color = 3;
     flagged.point = 6;
     flagged.size = 1.6;
-    flagged.name = "flagged peaks (merged, wide, weak, gap, edge)";
+    flagged.name = "flagged peaks (merged, wide, weak, gap, edge, ambiguous, cross)";
     numbers.color = 6;
     std::vector<const TurnPoint*> rows;
     for (const TurnTable& pk : peaks) {
