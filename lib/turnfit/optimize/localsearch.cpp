@@ -504,29 +504,42 @@ LocalSearchResult local_search(const TurnPatternProblem& p, const std::vector<do
   out.iterations = static_cast<int>(sum.iterations.size());
   out.sigma_probes = meas.probes;
   if (estimate) {
-    // chi2 per degree of freedom 1 per probe: sigma_p^2 = sum dr^2 / (N_p - n N_p / N).
-    const TurnPatternResult r1 = simulate(res.x_of(u.data()));
-    size_t nmatched = 0;
-    for (size_t i = 0; i < nmeas; ++i) nmatched += r1.ok && r1.matched[i];
-    for (size_t q = 0; q < meas.probes.size(); ++q) {
-      auto [b, e] = meas.probe_range(static_cast<int>(q));
-      double ss = 0;
-      size_t np = 0;
-      for (size_t i = b; i < e; ++i)
-        if (r1.ok && r1.matched[i]) {
-          ss += r1.delta_mm[i] * r1.delta_mm[i];
-          ++np;
-        }
-      const double dof = static_cast<double>(np) - static_cast<double>(n) * np / std::max<size_t>(nmatched, 1);
-      const double sp = np > 0 && dof > 0.5 ? std::sqrt(ss / dof) : sigma[b];
-      out.sigma_mm.push_back(sp);
-      for (size_t i = b; i < e; ++i) sigma[i] = sp;
+    // chi2 per degree of freedom 1 per probe: sigma_p^2 = sum dr^2 / (N_p - n N_p / N), from the
+    // converged residuals, then a pass with it; again while an estimate moves by more than 10 %
+    // (a first pass far from the optimum over-estimates it), at most 4 passes in all.
+    for (int pass = 2; pass <= 4; ++pass) {
+      const TurnPatternResult r1 = simulate(res.x_of(u.data()));
+      size_t nmatched = 0;
+      for (size_t i = 0; i < nmeas; ++i) nmatched += r1.ok && r1.matched[i];
+      std::vector<double> est;
+      bool moved = false;
+      for (size_t q = 0; q < meas.probes.size(); ++q) {
+        auto [b, e] = meas.probe_range(static_cast<int>(q));
+        double ss = 0;
+        size_t np = 0;
+        for (size_t i = b; i < e; ++i)
+          if (r1.ok && r1.matched[i]) {
+            ss += r1.delta_mm[i] * r1.delta_mm[i];
+            ++np;
+          }
+        const double dof = static_cast<double>(np) - static_cast<double>(n) * np / std::max<size_t>(nmatched, 1);
+        const double sp = np > 0 && dof > 0.5 ? std::sqrt(ss / dof) : sigma[b];
+        moved = moved || std::fabs(sp - sigma[b]) > 0.1 * sigma[b];
+        est.push_back(sp);
+      }
+      if (pass > 2 && !moved) break;  // the last pass's weights are within 10 % of these: keep them
+      for (size_t q = 0; q < meas.probes.size(); ++q) {
+        auto [b, e] = meas.probe_range(static_cast<int>(q));
+        for (size_t i = b; i < e; ++i) sigma[i] = est[q];
+      }
+      out.sigma_mm = est;
+      set_sigma(sigma);
+      sum = lm_pass(res, u, s, pass);
+      out.iterations += static_cast<int>(sum.iterations.size());
+      out.sigma_passes = pass;
     }
-    out.sigma_source = "estimated per probe from the converged residuals (chi2 per degree of freedom 1); "
-                       "first pass weighted by each probe's wire step / sqrt(12)";
-    set_sigma(sigma);
-    sum = lm_pass(res, u, s, 2);
-    out.iterations += static_cast<int>(sum.iterations.size());
+    out.sigma_source = "estimated per probe from the converged residuals (chi2 per degree of freedom 1), re-estimated "
+                       "until it moves by less than 10 %; first pass weighted by each probe's wire step / sqrt(12)";
   } else {
     for (size_t q = 0; q < meas.probes.size(); ++q) out.sigma_mm.push_back(sigma[meas.probe_range(static_cast<int>(q)).first]);
     out.sigma_source = "problem file (sigma_mm)";

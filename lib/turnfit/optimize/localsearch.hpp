@@ -72,6 +72,7 @@ struct LocalSearchResult {
   std::vector<std::string> sigma_probes;     ///< probes, in measured order
   std::vector<double> sigma_mm;              ///< peak-position uncertainty used per probe
   std::string sigma_source;                  ///< "problem file" or how it was estimated
+  int sigma_passes = 1;                      ///< fit passes (each estimate of sigma adds one)
   double chi2_dof = 0;                ///< after the fit (measured turns, less the variables)
   size_t evaluations = 0;             ///< designs simulated
   size_t jacobians = 0;               ///< finite-difference Jacobians formed
@@ -109,7 +110,8 @@ FitSummary summarize(const TurnPatternResult& r, const std::vector<double>& sigm
 /// (model - measured) / sigma of every measured turn, with the problem's priors and the weak
 /// prior. Without the problem's sigma_mm, a first pass weighs each probe by its wire step /
 /// sqrt(12) (the readout's resolution); the uncertainty is then estimated per probe from the
-/// converged residuals (chi2 per degree of freedom 1) and a second pass fits with it.
+/// converged residuals (chi2 per degree of freedom 1) and a second pass fits with it, and again
+/// (at most 4 passes) while an estimate moves by more than 10 %.
 /// Then, with settings.minimax, the minimax polish: from the least-squares result, steps that
 /// minimize the largest |residual| [mm] of the model linearized by the Jacobian (Lawson's
 /// iteratively reweighted least squares, with a ridge toward the current design that acts as a

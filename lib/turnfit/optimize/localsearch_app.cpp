@@ -205,7 +205,7 @@ nlohmann::json localsearch_report(const TurnPatternProblem& p, const LocalSearch
   nlohmann::json j = report_head(p, "lm", start, provenance);
   nlohmann::json sg = nlohmann::json::object();
   for (size_t q = 0; q < r.sigma_probes.size(); ++q) sg[r.sigma_probes[q]] = jnum(r.sigma_mm[q]);
-  j["sigma_mm"] = {{"source", r.sigma_source}, {"per_probe", sg}};
+  j["sigma_mm"] = {{"source", r.sigma_source}, {"per_probe", sg}, {"passes", r.sigma_passes}};
   const double dof = static_cast<double>(r.before.matched) - static_cast<double>(p.n_variables());
   j["before"] = summary_json(p, r.before, dof > 0 ? r.before.chi2 / dof : std::nan(""));
   j["after"] = summary_json(p, r.after, r.chi2_dof);
