@@ -230,17 +230,17 @@ ceres::Solver::Summary lm_pass(const Residuals& res, std::vector<double>& u, con
   return summary;
 }
 
-/// The minimax polish (see local_search); u and J (the fit's residual Jacobian at u, rows
-/// weighted by inv_sigma, priors after the data) are the least-squares result's.
+/// The minimax polish (see local_search); u, J (the fit's residual Jacobian at u, rows
+/// weighted by inv_sigma, priors after the data) and cur (its simulation) are the
+/// least-squares result's.
 void minimax_polish(const TurnPatternProblem& p, const Residuals& res, std::vector<double> u, Eigen::MatrixXd J,
-                    const std::vector<double>& sigma, const LocalSearchSettings& s, LocalSearchResult& out) {
+                    TurnPatternResult cur, const std::vector<double>& sigma, const LocalSearchSettings& s,
+                    LocalSearchResult& out) {
   const size_t n = res.n, nmeas = res.nmeas;
   const FitSummary& ls = out.after;
   FitSummary best = ls;
   out.x_minimax = out.x;
   out.minimax = ls;
-  TurnPatternResult cur = p.simulate(out.x);
-  ++out.minimax_evaluations;
   out.minimax_termination = "no step lowered the worst turn";
   while (out.minimax_steps < s.minimax_steps) {
     // The matched data rows, in mm per unit of scaled variable.
@@ -603,7 +603,7 @@ LocalSearchResult local_search(const TurnPatternProblem& p, const std::vector<do
   out.identifiability = describe_identifiability(names, Jd, out.correlation);
 
   const size_t fit_evaluations = res.evaluations;
-  if (s.minimax) minimax_polish(p, res, u, J, sigma, s, out);  // counts its trial designs
+  if (s.minimax) minimax_polish(p, res, u, J, fin, sigma, s, out);  // counts its trial designs
   const size_t polish_jacobians = res.evaluations - fit_evaluations;
   out.evaluations = res.evaluations + own_evaluations + out.minimax_evaluations;
   out.minimax_evaluations += polish_jacobians;

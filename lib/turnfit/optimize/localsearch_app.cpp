@@ -186,6 +186,13 @@ nlohmann::json summary_json(const TurnPatternProblem& p, const FitSummary& f, do
   return j;
 }
 
+/// A design as {variable name: value}: the dvars file -o writes, and the report's minimax x.
+nlohmann::json design_json(const TurnPatternProblem& p, const std::vector<double>& x) {
+  nlohmann::json dv = nlohmann::json::object();
+  for (size_t k = 0; k < x.size(); ++k) dv[p.variables()[k].name] = jnum(x[k]);
+  return dv;
+}
+
 /// What every report starts with: format, provenance, problem, method, start.
 nlohmann::json report_head(const TurnPatternProblem& p, const std::string& method, const std::string& start,
                            bool provenance) {
@@ -216,9 +223,7 @@ nlohmann::json localsearch_report(const TurnPatternProblem& p, const LocalSearch
     mm["evaluations"] = r.minimax_evaluations;
     mm["termination"] = r.minimax_termination;
     mm["tolerance_mm"] = tolerance_mm;
-    nlohmann::json xv = nlohmann::json::object();
-    for (size_t k = 0; k < r.x_minimax.size(); ++k) xv[p.variables()[k].name] = jnum(r.x_minimax[k]);
-    mm["x"] = xv;
+    mm["x"] = design_json(p, r.x_minimax);
     j["minimax"] = mm;
   }
   j["evaluations"] = r.evaluations;
@@ -335,9 +340,7 @@ int run_localsearch(const LocalSearchOptions& o) {
   // Writes the design, the report and the residuals, then commits them together.
   auto write_outputs = [&](const std::vector<double>& x, const nlohmann::json& rep) {
     reopen(best, out_path), reopen(report, o.report), reopen(residuals, o.residuals);
-    nlohmann::json dv = nlohmann::json::object();
-    for (size_t j = 0; j < x.size(); ++j) dv[p->variables()[j].name] = x[j];
-    best->stream() << dv.dump(1) << "\n";
+    best->stream() << design_json(*p, x).dump(1) << "\n";
     if (report) report->stream() << rep.dump(1) << "\n";
     if (residuals) {
       const TurnPatternResult fin = p->simulate(x);

@@ -328,13 +328,13 @@ ModelFiles read_model_files(const Machine& m) {
 
 TrackModel make_track_model(const Machine& m, const ModelOptions& opt, const ModelFiles* files) {
   TrackModel t;
-  t.map = files && same_main_field(*files, m) ? *files->map : load_main_field(m);
+  const bool files_map = files && same_main_field(*files, m);
+  t.map = files_map ? *files->map : load_main_field(m);
   if (opt.opal_map) t.opal_map.emplace(t.map);
   for (size_t i = 0; i < m.trimcoils.size(); ++i) {
     const TrimCoil& c = m.trimcoils[i];
     // A coil the files hold already tabulated (same shape; only bmax may differ), over the same map.
-    if (files && !opt.opal_map && i < files->coils.size() && same_shape(files->coils[i].coil(), c) &&
-        same_main_field(*files, m)) {
+    if (files_map && !opt.opal_map && i < files->coils.size() && same_shape(files->coils[i].coil(), c)) {
       t.coils.push_back(files->coils[i]);
       t.coils.back().set_bmax(c.bmax_T);
       continue;

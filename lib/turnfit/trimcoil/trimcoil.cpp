@@ -324,18 +324,19 @@ TrimCoilSum::TrimCoilSum(const std::vector<TrimCoilField>& coils, double r_lo, d
   cuts.erase(std::unique(cuts.begin(), cuts.end(), [](double a, double b) { return b - a <= 1e-12; }), cuts.end());
   for (size_t k = 0; k + 1 < cuts.size(); ++k) {
     const double a = cuts[k], b = cuts[k + 1];
-    // The finest spacing any coil's table uses on this piece.
+    // The coils whose tables reach into this piece (the others are 0 here: outside their
+    // support), and the finest spacing their tables use on it.
     double h = b - a;
-    bool any = false;
+    std::vector<size_t> here;
     for (size_t i : use)
       for (const auto& g : coils[i].lut_) {
         const double e = g.r0 + static_cast<double>(g.s.size() - 1) * g.h;
         if (g.r0 < b && e > a) {
           h = std::min(h, g.h);
-          any = true;
+          if (here.empty() || here.back() != i) here.push_back(i);
         }
       }
-    if (!any) continue;  // no coil's table here: every summed coil is 0 (outside its support)
+    if (here.empty()) continue;
     Piece p;
     const size_t n = static_cast<size_t>(std::ceil((b - a) / h - 1e-9)) + 1;
     p.r0 = a;
@@ -348,7 +349,7 @@ TrimCoilSum::TrimCoilSum(const std::vector<TrimCoilField>& coils, double r_lo, d
     const double eps = 1e-12 * (b - a);
     for (size_t j = 0; j < p.s.size(); ++j) {
       const double r = std::min(std::max(a + static_cast<double>(j) * p.h, a + eps), b - eps);
-      for (size_t i : use) {
+      for (size_t i : here) {
         double v, d;
         coils[i].shape_exact(r, v, d);
         p.s[j] += coils[i].coil_.bmax_T * v;
