@@ -103,7 +103,7 @@ int main(int argc, char** argv) {
     const TrackModel model = make_track_model(m, {}, &files);
     for (const auto& t : sum.turns) pk << model.probes[static_cast<size_t>(t.probe)].name << ',' << t.turn << ',' << t.r_mm << ",1,1,1,ok\n";
     std::ofstream(tmp + "/problem.json") << "{\"format\": \"turnfit-problem/1\", \"machine\": \"" << share("machine.json")
-                                         << "\", \"peaks\": \"peaks.csv\", \"variables\": \"paper\"}\n";
+                                         << "\", \"peaks\": \"peaks.csv\", \"bunch\": \"reference\", \"variables\": \"paper\"}\n";
   }
   LoadedProblem lp = load_problem(tmp + "/problem.json", "", -1);
   const auto* p = dynamic_cast<const TurnPatternProblem*>(lp.problem.get());

@@ -66,9 +66,9 @@ Row run_truth(std::uint64_t seed, double amplitude, double noise, const LocalSea
   pk.close();
   const std::string problem = dir + "/problem-" + std::to_string(seed) + ".json";
   std::ofstream(problem) << "{\"format\": \"turnfit-problem/1\", \"machine\": \"" << ring8_machine()
-                         << "\", \"peaks\": \"" << peaks << "\", \"variables\": \"paper\"}\n";
+                         << "\", \"peaks\": \"" << peaks << "\", \"bunch\": \"reference\", \"variables\": \"paper\"}\n";
   LoadedProblem lp = load_problem(problem, "", -1);
-  const auto* p = dynamic_cast<const TurnPatternProblem*>(lp.problem.get());
+  auto* p = dynamic_cast<TurnPatternProblem*>(lp.problem.get());
   Row row{seed, amplitude, local_search(*p, p->start(), s)};
   for (size_t j = 0; j < row.r.variables.size(); ++j) {
     const FittedVariable& v = row.r.variables[j];

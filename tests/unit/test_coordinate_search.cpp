@@ -43,7 +43,7 @@ std::unique_ptr<TurnPatternProblem> truth_problem(const TempDir& tmp, const std:
   if (!variables.empty()) vars = variables;
   return load_turn_problem(tmp.file("p.json", "{\"format\": \"turnfit-problem/1\", \"machine\": \"" +
                                                   ring8("machine.json") + "\", \"peaks\": \"" + peaks +
-                                                  "\", \"variables\": " + vars + "}"));
+                                                  "\", \"bunch\": \"reference\", \"variables\": " + vars + "}"));
 }
 
 /// Hand-made residuals on two probes A (points 0 .. na-1) and B (the rest), all matched.
@@ -283,7 +283,7 @@ TEST_CASE("coordinate search: a design that loses a turn is not kept, however we
   }
   auto p = load_turn_problem(tmp.file("p.json", "{\"format\": \"turnfit-problem/1\", \"machine\": \"" +
                                                     ring8("machine.json") + "\", \"peaks\": \"" +
-                                                    tmp.file("peaks.csv", csv) + "\", \"variables\": [\"vchange\"]}"));
+                                                    tmp.file("peaks.csv", csv) + "\", \"bunch\": \"reference\", \"variables\": [\"vchange\"]}"));
   REQUIRE(p->upper()[0] - p->lower()[0] == range);
   const TurnPatternResult rc = p->simulate({xc}), rt = p->simulate({xtv});
   REQUIRE(rc.ok);

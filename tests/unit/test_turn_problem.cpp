@@ -30,9 +30,12 @@ namespace {
 /// The nominal ring8 machine's own turns as a peaks file: the problem's start then matches exactly.
 std::string nominal_peaks(const TempDir& tmp) { return turns_as_peaks(load_machine(ring8("machine.json")), tmp, "peaks.csv"); }
 
+/// The peaks here are turnfit-track's turns, the reference particle's: "bunch": "reference"
+/// unless `extra` says otherwise.
 std::string problem_text(const std::string& peaks, const std::string& variables, const std::string& extra = "") {
+  const std::string bunch = extra.find("\"bunch\"") == std::string::npos ? ", \"bunch\": \"reference\"" : "";
   return "{\"format\": \"turnfit-problem/1\", \"machine\": \"" + ring8("machine.json") + "\", \"peaks\": \"" + peaks +
-         "\", \"variables\": " + variables + extra + "}";
+         "\", \"variables\": " + variables + bunch + extra + "}";
 }
 
 }  // namespace

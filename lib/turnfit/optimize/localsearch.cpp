@@ -427,7 +427,7 @@ std::vector<std::string> describe_identifiability(const std::vector<std::string>
   return out;
 }
 
-LocalSearchResult local_search(const TurnPatternProblem& p, const std::vector<double>& x0,
+LocalSearchResult local_search(TurnPatternProblem& p, const std::vector<double>& x0,
                                const LocalSearchSettings& s) {
   quiet_ceres_logging();
   const auto wall0 = std::chrono::steady_clock::now();
@@ -463,6 +463,17 @@ LocalSearchResult local_search(const TurnPatternProblem& p, const std::vector<do
     ++own_evaluations;
     return p.simulate(x);
   };
+  // The bunch's centroid shift at x (centroid mode): the largest change [mm].
+  const unsigned threads = resolve_thread_count(s.threads);
+  auto update_centroid = [&](const std::vector<double>& x) {
+    if (p.bunch_nodes().empty()) return 0.0;
+    const double change = p.update_centroid_shift(x, threads);
+    out.centroid_tracks += p.bunch_nodes().size() + 1;
+    ++out.centroid_updates;
+    out.centroid_change_mm = change;
+    return change;
+  };
+  if (p.current_centroid_shift().x != x0) update_centroid(x0);
   const TurnPatternResult start = simulate(x0);
   if (!start.ok) throw Error(ExitCode::data, p.file() + ": the start cannot be simulated: " + start.reason);
   out.before = summarize(start, sigma);
@@ -472,7 +483,7 @@ LocalSearchResult local_search(const TurnPatternProblem& p, const std::vector<do
   Residuals res(p);
   res.n = n;
   res.nmeas = nmeas;
-  res.threads = resolve_thread_count(s.threads);
+  res.threads = threads;
   res.h = s.fd_step;
   res.central = s.central;
   res.weak = s.weak_prior_range;
@@ -503,16 +514,20 @@ LocalSearchResult local_search(const TurnPatternProblem& p, const std::vector<do
   ceres::Solver::Summary sum = lm_pass(res, u, s, 1);
   out.iterations = static_cast<int>(sum.iterations.size());
   out.sigma_probes = meas.probes;
-  if (estimate) {
-    // chi2 per degree of freedom 1 per probe: sigma_p^2 = sum dr^2 / (N_p - n N_p / N), from the
-    // converged residuals, then a pass with it; again while an estimate moves by more than 10 %
-    // (a first pass far from the optimum over-estimates it), at most 4 passes in all.
-    for (int pass = 2; pass <= 4; ++pass) {
+  // Then, at the converged design: the centroid shift again (centroid mode), and sigma per
+  // probe with chi2 per degree of freedom 1 (when the problem gives none), sigma_p^2 =
+  // sum dr^2 / (N_p - n N_p / N) from the converged residuals; a pass with them; again while
+  // the shift moves by more than a tenth of the smallest sigma or a sigma estimate by more than
+  // 10 % (a first pass far from the optimum over-estimates it), at most 4 passes in all.
+  for (int pass = 2; pass <= 4 && (estimate || !p.bunch_nodes().empty()); ++pass) {
+    const double shift_change = update_centroid(res.x_of(u.data()));
+    const bool shift_moved = shift_change > 0.1 * *std::min_element(sigma.begin(), sigma.end());
+    bool moved = false;
+    std::vector<double> est;
+    if (estimate) {
       const TurnPatternResult r1 = simulate(res.x_of(u.data()));
       size_t nmatched = 0;
       for (size_t i = 0; i < nmeas; ++i) nmatched += r1.ok && r1.matched[i];
-      std::vector<double> est;
-      bool moved = false;
       for (size_t q = 0; q < meas.probes.size(); ++q) {
         auto [b, e] = meas.probe_range(static_cast<int>(q));
         double ss = 0;
@@ -527,17 +542,22 @@ LocalSearchResult local_search(const TurnPatternProblem& p, const std::vector<do
         moved = moved || std::fabs(sp - sigma[b]) > 0.1 * sigma[b];
         est.push_back(sp);
       }
-      if (pass > 2 && !moved) break;  // the last pass's weights are within 10 % of these: keep them
+    }
+    // The last pass's weights are within 10 % of these and its shift within a tenth of sigma: keep them.
+    if (!shift_moved && (!estimate || (pass > 2 && !moved))) break;
+    if (estimate) {
       for (size_t q = 0; q < meas.probes.size(); ++q) {
         auto [b, e] = meas.probe_range(static_cast<int>(q));
         for (size_t i = b; i < e; ++i) sigma[i] = est[q];
       }
       out.sigma_mm = est;
-      set_sigma(sigma);
-      sum = lm_pass(res, u, s, pass);
-      out.iterations += static_cast<int>(sum.iterations.size());
-      out.sigma_passes = pass;
     }
+    set_sigma(sigma);  // drops the residuals cached under the old weights and shift
+    sum = lm_pass(res, u, s, pass);
+    out.iterations += static_cast<int>(sum.iterations.size());
+    out.sigma_passes = pass;
+  }
+  if (estimate) {
     out.sigma_source = "estimated per probe from the converged residuals (chi2 per degree of freedom 1), re-estimated "
                        "until it moves by less than 10 %; first pass weighted by each probe's wire step / sqrt(12)";
   } else {
@@ -605,7 +625,9 @@ LocalSearchResult local_search(const TurnPatternProblem& p, const std::vector<do
   const size_t fit_evaluations = res.evaluations;
   if (s.minimax) minimax_polish(p, res, u, J, fin, sigma, s, out);  // counts its trial designs
   const size_t polish_jacobians = res.evaluations - fit_evaluations;
-  out.evaluations = res.evaluations + own_evaluations + out.minimax_evaluations;
+  out.evaluations = res.evaluations + own_evaluations + out.minimax_evaluations + out.centroid_tracks;
+  out.centroid_rms_mm = p.current_centroid_shift().rms_mm;
+  out.centroid_max_mm = p.current_centroid_shift().max_abs_mm;
   out.minimax_evaluations += polish_jacobians;
   out.jacobians = res.jacobians;
   out.failed_evaluations = res.failed;

@@ -72,7 +72,14 @@ struct LocalSearchResult {
   std::vector<std::string> sigma_probes;     ///< probes, in measured order
   std::vector<double> sigma_mm;              ///< peak-position uncertainty used per probe
   std::string sigma_source;                  ///< "problem file" or how it was estimated
-  int sigma_passes = 1;                      ///< fit passes (each estimate of sigma adds one)
+  int sigma_passes = 1;                      ///< fit passes (each estimate of sigma, or of the centroid shift, adds one)
+  /// The bunch's centroid shift (TurnPatternProblem, "centroid" mode): recomputed at the start
+  /// and before each pass; its last change [mm], its rms and largest value [mm] as used for
+  /// the result, and the particles tracked for it (counted in `evaluations`, one design each).
+  int centroid_updates = 0;
+  double centroid_change_mm = 0;
+  double centroid_rms_mm = 0, centroid_max_mm = 0;
+  size_t centroid_tracks = 0;
   double chi2_dof = 0;                ///< after the fit (measured turns, less the variables)
   size_t evaluations = 0;             ///< designs simulated
   size_t jacobians = 0;               ///< finite-difference Jacobians formed
@@ -116,8 +123,11 @@ FitSummary summarize(const TurnPatternResult& r, const std::vector<double>& sigm
 /// minimize the largest |residual| [mm] of the model linearized by the Jacobian (Lawson's
 /// iteratively reweighted least squares, with a ridge toward the current design that acts as a
 /// trust region), each kept by the paper's rule (see LocalSearchSettings::minimax).
+/// In the problem's "centroid" mode the centroid shift is recomputed at x0 and before each
+/// pass, and passes go on (at most 4 in all) while it moves by more than a tenth of the
+/// smallest sigma; the problem keeps the last one.
 /// EX_DATAERR if x0 cannot be simulated; EX_USAGE if x0 lies outside the bounds.
-LocalSearchResult local_search(const TurnPatternProblem& p, const std::vector<double>& x0,
+LocalSearchResult local_search(TurnPatternProblem& p, const std::vector<double>& x0,
                                const LocalSearchSettings& s);
 
 }  // namespace turnfit

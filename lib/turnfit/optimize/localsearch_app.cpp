@@ -202,6 +202,15 @@ nlohmann::json report_head(const TurnPatternProblem& p, const std::string& metho
   j["problem"] = p.file();
   j["method"] = method;
   j["start"] = start.empty() ? "the machine's values" : shown(start);
+  // What the model predicts at each probe crossing: the bunch's centre or the reference particle.
+  nlohmann::json b = {{"mode", p.bunch_mode()}, {"nodes", p.bunch_nodes().size()}};
+  if (!p.bunch_nodes().empty()) {
+    const CentroidShift& cs = p.current_centroid_shift();
+    b["shift_rms_mm"] = jnum(cs.rms_mm);
+    b["shift_max_mm"] = jnum(cs.max_abs_mm);
+    b["crossings_without_shift"] = cs.unknown;
+  }
+  j["bunch"] = b;
   return j;
 }
 
@@ -213,6 +222,11 @@ nlohmann::json localsearch_report(const TurnPatternProblem& p, const LocalSearch
   nlohmann::json sg = nlohmann::json::object();
   for (size_t q = 0; q < r.sigma_probes.size(); ++q) sg[r.sigma_probes[q]] = jnum(r.sigma_mm[q]);
   j["sigma_mm"] = {{"source", r.sigma_source}, {"per_probe", sg}, {"passes", r.sigma_passes}};
+  if (!p.bunch_nodes().empty()) {
+    j["bunch"]["updates"] = r.centroid_updates;
+    j["bunch"]["last_change_mm"] = jnum(r.centroid_change_mm);
+    j["bunch"]["tracks"] = r.centroid_tracks;
+  }
   const double dof = static_cast<double>(r.before.matched) - static_cast<double>(p.n_variables());
   j["before"] = summary_json(p, r.before, dof > 0 ? r.before.chi2 / dof : std::nan(""));
   j["after"] = summary_json(p, r.after, r.chi2_dof);
@@ -298,7 +312,7 @@ int run_localsearch(const LocalSearchOptions& o) {
   if (stdout_users > 1) throw usage_error("only one of -o, --report and --residuals can be stdout");
   if (o.problem == "-" && o.start == "-") throw usage_error("the problem and --start cannot both be stdin");
   LoadedProblem lp = load_problem(o.problem, "", -1);
-  auto* p = dynamic_cast<const TurnPatternProblem*>(lp.problem.get());
+  auto* p = dynamic_cast<TurnPatternProblem*>(lp.problem.get());
   if (!p)
     throw usage_error(shown(o.problem) + " is not a turn-pattern problem (it names no machine): turnfit-localsearch "
                                          "fits a machine to measured turns");
@@ -362,6 +376,8 @@ int run_localsearch(const LocalSearchOptions& o) {
         std::cerr << "\rturnfit-localsearch: sweep " << sweep << "  worst turn " << cli::fmt(linf, 4) << " mm     "
                   << std::flush;
       };
+    // The centroid shift at the start, held for the whole search (its rule compares designs).
+    if (p->current_centroid_shift().x != x0) p->update_centroid_shift(x0, s.threads);
     const CoordinateResult c = coordinate_search(*p, x0, cs);
     if (cs.progress) std::cerr << "\n";
     write_outputs(c.x, !o.report.empty() ? coordinate_report(*p, c, o.start, !o.common.no_provenance) : nlohmann::json());

@@ -8,6 +8,7 @@
 #include "turnfit/cli/common.hpp"
 #include "turnfit/io/csv.hpp"
 #include "turnfit/io/error.hpp"
+#include "turnfit/io/parallel.hpp"
 #include "turnfit/optimize/problem_keys.hpp"
 
 namespace turnfit {
@@ -71,11 +72,11 @@ std::unique_ptr<TurnPatternProblem> TurnPatternProblem::from_json(const nlohmann
                                                                   const std::string& dir) {
   ProblemKeys k{file};
   static const std::set<std::string> known = {"format",     "name",        "description", "machine",  "peaks",
-                                              "variables",  "objectives",  "constraints", "sigma_mm", "reference"};
+                                              "variables",  "objectives",  "constraints", "sigma_mm", "reference", "bunch"};
   for (auto it = j.begin(); it != j.end(); ++it)
     if (!known.count(it.key()))
       k.fail(it.key(), "unknown key in a turn-pattern problem (known: format, name, description, machine, peaks, "
-                       "variables, objectives, constraints, sigma_mm, reference)");
+                       "variables, objectives, constraints, sigma_mm, reference, bunch)");
 
   // The machine, and every file its model reads. An error in a file the problem names says
   // which key named it (the code stays: 66 for a missing file, 65 for a bad one).
@@ -218,6 +219,24 @@ std::unique_ptr<TurnPatternProblem> TurnPatternProblem::from_json(const nlohmann
     }
   }
 
+  // What the probes measure: the bunch's centre (default when the machine has a bunch with
+  // spread) or the reference particle.
+  std::vector<QuadratureNode> nodes;
+  if (m.bunch) {
+    if (!m.bunch->file.empty()) nodes = named_by("machine", [&] { return bunch_quadrature(read_bunch_file(m.bunch->file)); });
+    else nodes = bunch_quadrature(*m.bunch);
+  }
+  std::string bunch_mode = nodes.empty() ? "reference" : "centroid";
+  if (j.contains("bunch")) {
+    bunch_mode = k.text(j["bunch"], "bunch");
+    if (bunch_mode != "centroid" && bunch_mode != "reference")
+      k.fail("bunch", "expected \"centroid\" (the bunch's centre, what a probe measures) or \"reference\" (the reference particle)");
+    if (bunch_mode == "centroid" && nodes.empty())
+      k.fail("bunch", "\"centroid\": " + machine_path + " has no bunch with spread (its bunch block: emittances, sigma_E_MeV, "
+                      "sigma_phase_deg, or a bunch file)");
+  }
+  if (bunch_mode == "reference") nodes.clear();
+
   std::vector<double> lo, hi;
   std::vector<std::string> names;
   for (const auto& v : vars) {
@@ -238,6 +257,18 @@ std::unique_ptr<TurnPatternProblem> TurnPatternProblem::from_json(const nlohmann
   p->plan_ = std::move(plan);
   p->turn_count_ = turn_count;
   p->sigma_mm_ = std::move(sigma);
+  p->bunch_mode_ = bunch_mode;
+  p->nodes_ = std::move(nodes);
+  // The centroid shift at the start, so that every evaluation predicts the bunch's centre from
+  // the first; a fit recomputes it as it moves. A start that cannot be simulated keeps none
+  // (the reference particle's turns): the optimizer that evaluates it says why.
+  if (!p->nodes_.empty()) {
+    try {
+      p->shift_ = p->centroid_shift(p->start(), resolve_thread_count(0));
+    } catch (const Error&) {
+      p->shift_ = CentroidShift{};
+    }
+  }
   return p;
 }
 
@@ -272,11 +303,15 @@ TurnPatternResult TurnPatternProblem::simulate(const std::vector<double>& x) con
   r.simulated.format = "turns";
   r.simulated.probes = probe_names;
   r.simulated.points.reserve(turns.size());
+  const auto& shift = shift_.shift_mm;
   for (const auto& t : turns) {
     TurnPoint pt;
     pt.probe = t.probe;
     pt.turn = t.turn;
     pt.r_mm = t.r_mm;
+    // The bunch's centre where the shift is known (at the shift's design every node crossed here).
+    const auto p = static_cast<size_t>(t.probe), k = static_cast<size_t>(t.turn - 1);
+    if (p < shift.size() && k < shift[p].size() && !std::isnan(shift[p][k])) pt.r_mm += shift[p][k];
     r.simulated.points.push_back(pt);
   }
   finish_turn_table(r.simulated);
@@ -285,6 +320,75 @@ TurnPatternResult TurnPatternProblem::simulate(const std::vector<double>& x) con
   evaluate_objectives(plan_, r.delta_mm.data(), r.matched.data(), r.objectives.data());
   r.ok = true;
   return r;
+}
+
+CentroidShift TurnPatternProblem::centroid_shift(const std::vector<double>& x, unsigned threads) const {
+  CentroidShift out;
+  out.x = x;
+  if (nodes_.empty()) return out;
+  const Machine m = machine_at(x);
+  const TrackModel model = make_track_model(m, {}, &files_);
+  const Injection inj = effective_injection(m);
+  // Particle 0 is the reference, then the nodes; each one's crossings as [probe][turn - 1].
+  const size_t np = model.probes.size(), n = nodes_.size() + 1;
+  std::vector<std::vector<std::vector<double>>> r(n, std::vector<std::vector<double>>(np));
+  std::vector<std::string> failed(n);
+  parallel_for(n, threads, [&](size_t i, unsigned) {
+    try {
+      const ParticleState s0 = i == 0 ? injection_state(inj, m.particle.mass_MeV)
+                                      : offset_state(inj, m.particle.mass_MeV, model.rf_MHz, nodes_[i - 1].offset);
+      std::vector<TurnRecord> turns;
+      track_particle(model, s0, settings_, turns);
+      for (const auto& t : turns) {
+        auto& v = r[i][static_cast<size_t>(t.probe)];
+        const auto k = static_cast<size_t>(t.turn - 1);
+        if (v.size() <= k) v.resize(k + 1, std::nan(""));
+        v[k] = t.r_mm;
+      }
+    } catch (const Error& e) {
+      failed[i] = e.what();
+    }
+  });
+  if (!failed[0].empty()) throw Error(ExitCode::data, file_ + ": the bunch's centroid shift: " + failed[0]);
+  out.nodes = nodes_.size();
+  out.shift_mm.resize(np);
+  double ss = 0;
+  for (size_t p = 0; p < np; ++p) {
+    out.shift_mm[p].assign(r[0][p].size(), std::nan(""));
+    for (size_t k = 0; k < r[0][p].size(); ++k) {
+      if (std::isnan(r[0][p][k])) continue;
+      double mean = 0;
+      bool all = true;
+      for (size_t i = 1; i < n && all; ++i) {
+        // A node that could not start (a spread that leaves no energy) or missed this turn.
+        all = failed[i].empty() && k < r[i][p].size() && !std::isnan(r[i][p][k]);
+        if (all) mean += nodes_[i - 1].weight * r[i][p][k];
+      }
+      if (!all) {
+        ++out.unknown;
+        continue;
+      }
+      const double d = mean - r[0][p][k];
+      out.shift_mm[p][k] = d;
+      ++out.known;
+      ss += d * d;
+      out.max_abs_mm = std::max(out.max_abs_mm, std::fabs(d));
+    }
+  }
+  out.rms_mm = out.known ? std::sqrt(ss / static_cast<double>(out.known)) : 0;
+  return out;
+}
+
+double TurnPatternProblem::update_centroid_shift(const std::vector<double>& x, unsigned threads) {
+  if (nodes_.empty()) return 0;
+  CentroidShift now = centroid_shift(x, threads);
+  double change = 0;
+  for (size_t p = 0; p < now.shift_mm.size() && p < shift_.shift_mm.size(); ++p)
+    for (size_t k = 0; k < now.shift_mm[p].size() && k < shift_.shift_mm[p].size(); ++k)
+      if (!std::isnan(now.shift_mm[p][k]) && !std::isnan(shift_.shift_mm[p][k]))
+        change = std::max(change, std::fabs(now.shift_mm[p][k] - shift_.shift_mm[p][k]));
+  shift_ = std::move(now);
+  return change;
 }
 
 Evaluation TurnPatternProblem::evaluate(const std::vector<double>& x) const {

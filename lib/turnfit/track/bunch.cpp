@@ -6,6 +6,8 @@
 #include <atomic>
 #include <cmath>
 
+#include <Eigen/Dense>
+
 #include "turnfit/io/csv.hpp"
 #include "turnfit/io/error.hpp"
 #include "turnfit/io/parallel.hpp"
@@ -154,27 +156,137 @@ const std::vector<std::string>& bunch_columns() {
   return cols;
 }
 
-std::vector<BunchOffset> gaussian_bunch(const Bunch& b, size_t n, std::uint64_t seed) {
-  std::vector<BunchOffset> out(n);
-  // Twiss form (e.g. Wiedemann, Particle Accelerator Physics, ch. 8): x = sqrt(eps beta) u1,
-  // x' = sqrt(eps / beta) (u2 - alpha u1) with u1, u2 standard normal; eps in mm mrad and
-  // beta in m give x in mm and x' in mrad.
+namespace {
+
+/// The offsets of six standard normal variates u through the bunch's Gaussian: Twiss form
+/// (e.g. Wiedemann, Particle Accelerator Physics, ch. 8) x = sqrt(eps beta) u1,
+/// x' = sqrt(eps / beta) (u2 - alpha u1) in each plane (eps in mm mrad and beta in m give x in
+/// mm and x' in mrad), then energy u5 and phase u6.
+BunchOffset offset_of(const Bunch& b, const double (&u)[6]) {
   auto plane = [](double eps, double beta, double alpha, double u1, double u2, double& x, double& xp) {
     if (!(eps > 0)) return;
     x = std::sqrt(eps * beta) * u1;
     xp = std::sqrt(eps / beta) * (u2 - alpha * u1);
   };
+  BunchOffset o;
+  plane(b.emittance_r_mm_mrad, b.beta_r_m, b.alpha_r, u[0], u[1], o.dr_mm, o.dpr_mrad);
+  plane(b.emittance_z_mm_mrad, b.beta_z_m, b.alpha_z, u[2], u[3], o.dz_mm, o.dpz_mrad);
+  o.dE_MeV = b.sigma_E_MeV * u[4];
+  o.dphase_deg = b.sigma_phase_deg * u[5];
+  return o;
+}
+
+/// E[u^2] and E[u^4] of a standard normal truncated at |u| <= c (c <= 0: untruncated), by
+/// Simpson's rule on the density (smooth; 2000 intervals leave ~1e-13).
+void truncated_moments(double c, double& m2, double& m4) {
+  if (!(c > 0)) {
+    m2 = 1;
+    m4 = 3;
+    return;
+  }
+  const int n = 2000;
+  const double h = 2 * c / n;
+  double s0 = 0, s2 = 0, s4 = 0;
+  for (int i = 0; i <= n; ++i) {
+    const double u = -c + i * h, w = (i == 0 || i == n) ? 1 : (i % 2 ? 4 : 2), g = w * std::exp(-0.5 * u * u);
+    s0 += g;
+    s2 += g * u * u;
+    s4 += g * u * u * u * u;
+  }
+  m2 = s2 / s0;
+  m4 = s4 / s0;
+}
+
+BunchOffset& operator+=(BunchOffset& a, const BunchOffset& b) {
+  a.dr_mm += b.dr_mm;
+  a.dpr_mrad += b.dpr_mrad;
+  a.dz_mm += b.dz_mm;
+  a.dpz_mrad += b.dpz_mrad;
+  a.dE_MeV += b.dE_MeV;
+  a.dphase_deg += b.dphase_deg;
+  return a;
+}
+
+BunchOffset scaled(const BunchOffset& d, double f) {
+  return {f * d.dr_mm, f * d.dpr_mrad, f * d.dz_mm, f * d.dpz_mrad, f * d.dE_MeV, f * d.dphase_deg};
+}
+
+/// The mean over centre + sum_k u_k dirs[k], u_k independent and symmetric with E[u^2] = m2,
+/// E[u^4] = m4: the centre and +-a on each axis, a^2 = m4 / m2, weight m2^2 / (2 m4) each (so
+/// 2 w a^2 = m2 and 2 w a^4 = m4); the centre takes the rest. Exact for every polynomial of
+/// degree 5 in one variate and for odd mixed terms; it misses even mixed terms (u_j^2 u_k^2).
+std::vector<QuadratureNode> axis_nodes(const BunchOffset& centre, const std::vector<BunchOffset>& dirs, double m2,
+                                       double m4) {
+  if (dirs.empty()) return {{centre, 1}};
+  const double a = std::sqrt(m4 / m2), w = m2 * m2 / (2 * m4);
+  std::vector<QuadratureNode> q;
+  q.push_back({centre, 1 - 2 * w * static_cast<double>(dirs.size())});
+  for (const auto& d : dirs)
+    for (double sg : {1.0, -1.0}) {
+      BunchOffset o = centre;
+      o += scaled(d, sg * a);
+      q.push_back({o, w});
+    }
+  return q;
+}
+
+}  // namespace
+
+std::vector<BunchOffset> gaussian_bunch(const Bunch& b, size_t n, std::uint64_t seed) {
+  std::vector<BunchOffset> out(n);
   for (size_t i = 0; i < n; ++i) {
     Normal g(seed, i);
     const double c = b.cutoff_sigma;
-    const double u1 = g.draw(c), u2 = g.draw(c), u3 = g.draw(c), u4 = g.draw(c), u5 = g.draw(c), u6 = g.draw(c);
-    BunchOffset& o = out[i];
-    plane(b.emittance_r_mm_mrad, b.beta_r_m, b.alpha_r, u1, u2, o.dr_mm, o.dpr_mrad);
-    plane(b.emittance_z_mm_mrad, b.beta_z_m, b.alpha_z, u3, u4, o.dz_mm, o.dpz_mrad);
-    o.dE_MeV = b.sigma_E_MeV * u5;
-    o.dphase_deg = b.sigma_phase_deg * u6;
+    double u[6];
+    for (double& v : u) v = g.draw(c);
+    out[i] = offset_of(b, u);
   }
   return out;
+}
+
+std::vector<QuadratureNode> bunch_quadrature(const Bunch& b) {
+  double m2 = 1, m4 = 3;
+  truncated_moments(b.cutoff_sigma, m2, m4);
+  // Along each variate the used plane or spread moves: u_k = +-a, the rest 0.
+  const bool used[6] = {b.emittance_r_mm_mrad > 0, b.emittance_r_mm_mrad > 0, b.emittance_z_mm_mrad > 0,
+                        b.emittance_z_mm_mrad > 0, b.sigma_E_MeV != 0,        b.sigma_phase_deg != 0};
+  std::vector<BunchOffset> dirs;
+  for (int k = 0; k < 6; ++k) {
+    if (!used[k]) continue;
+    double u[6] = {0, 0, 0, 0, 0, 0};
+    u[k] = 1;
+    dirs.push_back(offset_of(b, u));
+  }
+  if (dirs.empty()) return {};
+  return axis_nodes(BunchOffset{}, dirs, m2, m4);
+}
+
+std::vector<QuadratureNode> bunch_quadrature(const std::vector<BunchOffset>& sample) {
+  if (sample.empty()) return {};
+  auto fields = [](const BunchOffset& o) {
+    return Eigen::Matrix<double, 6, 1>(o.dr_mm, o.dpr_mrad, o.dz_mm, o.dpz_mrad, o.dE_MeV, o.dphase_deg);
+  };
+  Eigen::Matrix<double, 6, 1> mean = Eigen::Matrix<double, 6, 1>::Zero();
+  for (const auto& o : sample) mean += fields(o);
+  mean /= static_cast<double>(sample.size());
+  Eigen::Matrix<double, 6, 6> cov = Eigen::Matrix<double, 6, 6>::Zero();
+  for (const auto& o : sample) {
+    const Eigen::Matrix<double, 6, 1> d = fields(o) - mean;
+    cov += d * d.transpose();
+  }
+  cov /= static_cast<double>(sample.size());
+  // Principal directions (a covariance may be singular: a column a file leaves out).
+  Eigen::SelfAdjointEigenSolver<Eigen::Matrix<double, 6, 6>> es(cov);
+  const double top = std::max(es.eigenvalues().maxCoeff(), 0.0);
+  std::vector<BunchOffset> dirs;
+  for (int k = 0; k < 6; ++k) {
+    const double lambda = es.eigenvalues()(k);
+    if (!(lambda > 1e-12 * top) || !(top > 0)) continue;
+    const Eigen::Matrix<double, 6, 1> v = es.eigenvectors().col(k) * std::sqrt(lambda);
+    dirs.push_back(BunchOffset{v(0), v(1), v(2), v(3), v(4), v(5)});
+  }
+  const BunchOffset centre{mean(0), mean(1), mean(2), mean(3), mean(4), mean(5)};
+  return axis_nodes(centre, dirs, 1, 3);
 }
 
 std::vector<BunchOffset> read_bunch_file(const std::string& path) {
