@@ -225,6 +225,98 @@ TEST_CASE("peaks: merged pairs (no dip between them) are split by the fit and fl
   }
 }
 
+namespace {
+/// A profile of skewed turns, as energy spread makes them: each turn a core (90% of its area, rms
+/// sigma_mm, 0.05 sigma outward) and an inner tail (10%, rms 1.3 sigma, 0.45 sigma inward), so that
+/// the turn's mean, the truth, is its centre; read every 0.5 mm, white noise of rms `noise`.
+Synthetic make_skewed_profile(const std::vector<double>& centres, double sigma_mm, double x0, double x1, double noise,
+                              unsigned seed) {
+  Synthetic p;
+  std::mt19937_64 rng(seed);
+  std::normal_distribution<double> nd(0, 1);
+  auto g = [](double x, double c, double s, double area) { const double u = (x - c) / s; return area / s * std::exp(-0.5 * u * u); };
+  for (double x = x0; x <= x1 + 1e-9; x += 0.5) {
+    double v = 0.02;
+    for (double c : centres)
+      v += sigma_mm * (g(x, c + 0.05 * sigma_mm, sigma_mm, 0.9) + g(x, c - 0.45 * sigma_mm, 1.3 * sigma_mm, 0.1));
+    p.x.push_back(x);
+    p.y.push_back(v + noise * nd(rng));
+  }
+  return p;
+}
+}  // namespace
+
+TEST_CASE("peaks: r_err_mm: merged turns carry a larger uncertainty, and it covers their real error", "[peaks]") {
+  // 12 resolved turns (12 -> 7 mm apart), then separations alternating 7.5 and 2.8 mm (an
+  // off-centre beam: 8 pairs closer than 2 sigma, split by the fit and flagged merged).
+  std::vector<double> truth = falling_separations(1880, 12, 7, 12);
+  for (int i = 1; i < 17; ++i) truth.push_back(truth.back() + (i % 2 ? 7.5 : 2.8));
+  SECTION("Gaussian turns: the statistical part alone covers an isolated turn") {
+    const auto p = make_profile(truth, 1.5, 1865, truth.back() + 15, 0.5, 0.005, 7);
+    const PeakResult r = find_peaks(p.x, p.y, PeakSettings{}, 1);
+    REQUIRE(r.peaks.size() == truth.size());
+    REQUIRE(count_flag(r, kPeakMerged) == 16);
+    double iso_max = 0, merged_min = 1e300;
+    for (size_t i = 0; i < truth.size(); ++i) {
+      const Peak& pk = r.peaks[i];
+      INFO("turn " << i << " at " << truth[i] << ": r " << pk.r_mm << ", r_err " << pk.r_err_mm << " (stat "
+                   << pk.r_err_stat_mm << ", sys " << pk.r_err_sys_mm << ")");
+      CHECK(pk.r_err_mm == Approx(std::hypot(pk.r_err_stat_mm, pk.r_err_sys_mm)));
+      CHECK(std::abs(pk.r_mm - truth[i]) <= 3 * pk.r_err_mm);
+      if (pk.flags & kPeakMerged)
+        merged_min = std::min(merged_min, pk.r_err_mm);
+      else if (i < 11)
+        iso_max = std::max(iso_max, pk.r_err_mm);
+      // An isolated turn's centroid: noise 0.005 over +-3 widths of a 1.5 mm turn read every 0.5 mm
+      // is sigma_n sqrt(sum (x - c)^2) / sum(y) = 0.005 sqrt(18 1.5^3 / 0.5) / (1.5 sqrt(2 pi) / 0.5)
+      // = 0.0073 mm; the model adds 0.003 widths in quadrature, and 6 (1.5/d)^4 widths for a
+      // neighbour d away (0.002 at 11 mm). 20%: that, and the noise is estimated from the profile.
+      if (i < 3) CHECK(pk.r_err_mm == Approx(std::hypot(0.0073, 0.0045)).epsilon(0.2));
+    }
+    CHECK(merged_min > 10 * iso_max);
+  }
+  SECTION("skewed turns: the merged turns' errors are real, and r_err_mm covers them") {
+    for (unsigned seed : {1u, 2u, 3u}) {
+      const auto p = make_skewed_profile(truth, 1.2, 1865, truth.back() + 15, 0.005, seed);
+      const PeakResult r = find_peaks(p.x, p.y, PeakSettings{}, 1);
+      INFO("seed " << seed);
+      REQUIRE(r.peaks.size() == truth.size());
+      double iso_max = 0, merged_min = 1e300, merged_err2 = 0, merged_pull2 = 0, iso_pull2 = 0;
+      int merged = 0, iso = 0;
+      for (size_t i = 0; i < truth.size(); ++i) {
+        const Peak& pk = r.peaks[i];
+        const double e = pk.r_mm - truth[i];
+        INFO("turn " << i << " at " << truth[i] << ": error " << e << ", r_err " << pk.r_err_mm << " (stat "
+                     << pk.r_err_stat_mm << ", sys " << pk.r_err_sys_mm << ") " << peak_flag_string(pk.flags));
+        CHECK(std::abs(e) <= 4 * pk.r_err_mm);  // an honest 1-sigma: 6e-5 per turn beyond 4
+        if (pk.flags & kPeakMerged) {
+          merged_min = std::min(merged_min, pk.r_err_mm);
+          merged_err2 += e * e;
+          merged_pull2 += e * e / (pk.r_err_mm * pk.r_err_mm);
+          ++merged;
+        } else if (i < 11) {
+          iso_max = std::max(iso_max, pk.r_err_mm);
+          iso_pull2 += e * e / (pk.r_err_mm * pk.r_err_mm);
+          ++iso;
+        }
+      }
+      REQUIRE(merged >= 12);
+      // The skew is what makes the merged turns' positions wrong (not the noise): their rms error
+      // (0.07-0.08 mm) is many times an isolated turn's uncertainty (0.009 mm), and r_err_mm is
+      // larger by more.
+      CHECK(std::sqrt(merged_err2 / merged) > 5 * iso_max);
+      CHECK(merged_min > 5 * iso_max);
+      // Neither class far outside its uncertainty. The isolated turns' pulls come out near 1 (rms
+      // 0.9-1.2); the merged turns' near 0.2: here the model is 4-5 times too cautious for them, as
+      // it was calibrated on turnfit-synth's merged turns, whose errors are larger (about 0.3
+      // widths against 0.06 here; turnfit-peakfind(1), UNCERTAINTY). Not absurdly cautious:
+      CHECK(std::sqrt(iso_pull2 / iso) < 2);
+      CHECK(std::sqrt(merged_pull2 / merged) < 2);
+      CHECK(std::sqrt(merged_pull2 / merged) > 0.1);
+    }
+  }
+}
+
 TEST_CASE("peaks: a pair too close to separate stays one peak, flagged wide, counted as two turns", "[peaks]") {
   // Turns every 12 mm; turns 5 and 6 only 0.3 mm apart (0.2 sigma): their sum is a Gaussian.
   std::vector<double> truth;
@@ -563,7 +655,7 @@ TEST_CASE("peaks: peakfind writes the peaks table and its JSON form", "[peaks]")
   std::getline(is, line);
   CHECK(line.rfind("# probe=RRX first_turn=9 peaks=12 merged=0", 0) == 0);
   std::getline(is, line);
-  CHECK(line == "probe,turn,r_mm,height,area,width_mm,flag");
+  CHECK(line == "probe,turn,r_mm,height,area,width_mm,r_err_mm,flag");
   std::getline(is, line);
   CHECK(line.rfind("RRX,9,", 0) == 0);
   CHECK(line.substr(line.size() - 3) == ",ok");

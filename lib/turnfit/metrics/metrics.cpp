@@ -252,6 +252,8 @@ TurnTable turn_table_from_csv(const CsvTable& csv) {
   const size_t cp = csv.column("probe"), ct = csv.column("turn"), cr = csv.column("r_mm");
   const bool has_flag = csv.has_column("flag");
   const size_t cf = has_flag ? csv.column("flag") : 0;
+  const bool has_err = csv.has_column("r_err_mm");
+  const size_t ce = has_err ? csv.column("r_err_mm") : 0;
   t.points.reserve(csv.rows());
   for (size_t row = 0; row < csv.rows(); ++row) {
     const std::string& name = csv.cell(row, cp);
@@ -271,6 +273,7 @@ TurnTable turn_table_from_csv(const CsvTable& csv) {
     p.r_mm = csv.number(row, cr);
     p.line = csv.line(row);
     if (has_flag) p.flag = csv.cell(row, cf);
+    if (has_err) p.r_err_mm = csv.number(row, ce);
     t.points.push_back(std::move(p));
   }
   finish_turn_table(t);

@@ -108,6 +108,7 @@ struct TurnPoint {
   double r_mm = 0;   ///< the compared column: radius along the probe
   long line = 0;     ///< source line (0: not from a file)
   std::string flag;  ///< peakfind's flag for merged or weak peaks ("" when none)
+  double r_err_mm = std::nan("");  ///< peakfind's 1-sigma position uncertainty (NaN: the table has no r_err_mm column)
 };
 
 /// The turn radii of one data set, sorted by probe (in first-appearance order) then turn,
@@ -128,8 +129,8 @@ struct TurnTable {
 /// EX_DATAERR "source:line: probe P turn T appears twice (first at line L)".
 void finish_turn_table(TurnTable& table);
 
-/// Takes the turns of a parsed CSV: peaks (probe,turn,r_mm,height,area,width_mm[,flag],
-/// from turnfit-peakfind) or turns (probe,turn,r_mm,s_mm,t_ns,energy_MeV,phase_deg, from
+/// Takes the turns of a parsed CSV: peaks (probe,turn,r_mm,height,area,width_mm[,r_err_mm][,flag],
+/// from turnfit-peakfind; r_err_mm is read when present) or turns (probe,turn,r_mm,s_mm,t_ns,energy_MeV,phase_deg, from
 /// turnfit-track); only probe, turn and r_mm are required. Turn numbers must be integers.
 TurnTable turn_table_from_csv(const CsvTable& csv);
 

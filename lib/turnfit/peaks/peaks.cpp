@@ -863,6 +863,58 @@ Numbering number_turns(const std::vector<Gauss>& g, const PeakSettings& s) {
   return out;
 }
 
+// The systematic part of a position's uncertainty (turnfit-peakfind(1), UNCERTAINTY). Calibrated
+// blind on turnfit-synth truths of ring8 (bench/peak_pulls.py, bench/RESULTS.md): the constants
+// marked "calibrated" were tuned on master seeds 7001-7003 and 7011 and checked on others.
+constexpr double kShapeFloor = 0.003;  ///< an isolated turn: fraction of its width (calibrated: 0.0029 RRI2, 0.0031 RRL)
+constexpr double kOverlap = 6;         ///< a neighbour at d: kOverlap (s_pair/d)^4 of the width (calibrated)
+constexpr double kOverlapPower = 4;    ///< (calibrated: 3.9 from the binned errors, 4 by the pulls)
+constexpr double kOverlapCap = 0.3;    ///< ... at most this fraction of the width per neighbour (calibrated)
+constexpr double kMergedSplit = 0.2;   ///< a merged turn: the split itself, fraction of the width (calibrated)
+constexpr double kEdge = 0.02;         ///< a turn at the end of the profile: fraction of its width (calibrated on 6 turns)
+constexpr double kWeakShape = 0.2;     ///< a weak turn: fraction of its width (designed; few weak turns to calibrate on)
+constexpr double kWeakLost = 1.6;      ///< ... and this many widths per fraction of its area missing (designed)
+
+/// Systematic 1-sigma of peak i's position, in mm; area_ratio: its area over its neighbours'.
+double systematic_error(const std::vector<Peak>& p, size_t i, double area_ratio) {
+  const Peak& a = p[i];
+  const double s = a.width_mm;
+  // Real turns are not Gaussian (energy spread skews them): even an isolated turn's centroid sits
+  // a little off the bunch mean.
+  double v = std::pow(kShapeFloor * s, 2);
+  // A neighbour's shape that the Gaussian model misses leaks into this turn's window after the
+  // deblending, and the split of turns that merge rests on the model: both grow steeply as the
+  // neighbour comes within a few widths (errors on ring8's synth data grow as (s_pair/d)^3.9
+  // from d = 5.3 to 2 s_pair, then level off near 0.35 s).
+  for (size_t j : {i - 1, i + 1}) {
+    if (j >= p.size()) continue;  // i - 1 wraps around for i = 0
+    const double d = std::abs(p[j].r_fit_mm - a.r_fit_mm);
+    const double sp = std::sqrt(0.5 * (s * s + p[j].width_mm * p[j].width_mm));
+    const double t = d > 0 ? std::min(kOverlap * std::pow(sp / d, kOverlapPower), kOverlapCap) : kOverlapCap;
+    v += std::pow(t * s, 2);
+  }
+  if (a.flags & kPeakMerged) v += std::pow(kMergedSplit * s, 2);
+  // A weak turn lacks a fraction f of a turn's area (cut by an aperture, or a split that gave its
+  // partner too much): the rest of a Gaussian cut on one side has its mean phi(z)/(1-f) widths off,
+  // z = Phi^-1(f), about 1.6 f for f up to 0.5 (0.8 at 0.5); at most one width.
+  if (a.flags & kPeakWeak) {
+    const double f = std::clamp(1 - area_ratio, 0.0, 1.0);
+    v += std::pow(kWeakShape * s, 2) + std::pow(std::min(1.0, kWeakLost * f) * s, 2);
+  }
+  // A turn near the end of the profile: on ring8's synth data the last RRL turn, within 1-2 widths
+  // of the end, where the beam ends too (the particles beyond were extracted): the centroid of what
+  // the probe saw is the mean of the particles that crossed it, 0.008-0.031 mm off (6 turns).
+  // A turn cut by the end of the readings while the beam goes on would be off by the mean of a
+  // truncated normal, phi(alpha)/Phi(alpha) widths for the end alpha widths away (0.29 at 1): not
+  // seen in the synth data, not included (turnfit-peakfind(1), UNCERTAINTY).
+  if (a.flags & kPeakEdge) v += std::pow(kEdge * s, 2);
+  // A wide peak stands for k turns and sits at their middle, but carries the first one's number
+  // (k turns h apart: the first is (k-1) h / 2 from the middle, and the peak's width^2 is at least
+  // (k^2 - 1) h^2 / 12, so the offset is at most sqrt(3 (k-1) / (k+1)) widths).
+  if ((a.flags & kPeakWide) && a.turns > 1) v += 3.0 * (a.turns - 1) / (a.turns + 1) * s * s;
+  return std::sqrt(v);
+}
+
 }  // namespace
 
 PeakResult find_peaks(const std::vector<double>& x, const std::vector<double>& y, const PeakSettings& s,
@@ -1091,10 +1143,24 @@ PeakResult find_peaks(const std::vector<double>& x, const std::vector<double>& y
   const Numbering numbering = number_turns(g, s);
   out.model_judged = numbering.model_judged;
   out.doubts = numbering.doubts;
+  // The noise for the positions' statistical errors: the detector's estimate (second differences
+  // of the readings) also counts the turns' own curvature where turns cover most of the profile
+  // (RRL's outer turns: 7x the noise between turns); the same estimate on the fit's residuals
+  // does not.
+  {
+    std::vector<double> res(x.size());
+    for (size_t k = 0; k < x.size(); ++k) res[k] = y[k] - w.bg[k];
+    for (const auto& gi : g)
+      for (long k = w.index_at(gi.mu - 8 * gi.sigma); k <= w.index_at(gi.mu + 8 * gi.sigma); ++k)
+        res[static_cast<size_t>(k)] -= gauss_at(gi, x[static_cast<size_t>(k)]);
+    out.residual_noise = g.empty() ? w.noise : std::max(noise_estimate(res), 1e-9 * ymax + 1e-300);
+  }
   int turn = first_turn;
+  std::vector<double> area_ratio(g.size(), 1.0);  // a turn's area over its neighbours' (for the uncertainty)
   for (size_t i = 0; i < g.size(); ++i) {
     Gauss& gi = g[i];
     const double na = std::min(neighbour_median(area, i, 6), median_area);
+    if (na > 0) area_ratio[i] = area[i] / na;
     if (gi.a < 2 * s.min_height * out.scale || (na > 0 && area[i] < 0.5 * na)) gi.flags |= kPeakWeak;
     if (gi.mu - 3 * gi.sigma < x.front() || gi.mu + 3 * gi.sigma > x.back()) gi.flags |= kPeakEdge;
     gi.flags |= numbering.flags[i];
@@ -1104,7 +1170,9 @@ PeakResult find_peaks(const std::vector<double>& x, const std::vector<double>& y
     Peak pk;
     pk.turn = turn;
     pk.r_mm = gi.mu;
-    pk.r_err_mm = std::sqrt(gi.mu_var);
+    pk.r_fit_mm = gi.mu;
+    pk.r_err_stat_mm = std::sqrt(gi.mu_var) * out.residual_noise / w.noise;  // mu_var is in units of w.noise^2
+    pk.turns = gi.turns;
     pk.height = gi.a;
     pk.width_mm = gi.sigma;
     pk.area = gi.a * gi.sigma * std::sqrt(2 * M_PI);
@@ -1124,9 +1192,24 @@ PeakResult find_peaks(const std::vector<double>& x, const std::vector<double>& y
         sw += frac * v;
         sx += frac * v * xk;
       }
-      if (sw > 0) pk.r_mm = sx / sw;
+      if (sw > 0) {
+        pk.r_mm = sx / sw;
+        // The centroid's noise: sum frac^2 (x - c)^2 noise^2 / sw^2 (white noise on each reading).
+        double sq = 0;
+        for (long k = w.index_at(lo); k <= w.index_at(hi); ++k) {
+          const double xk = x[static_cast<size_t>(k)];
+          const double frac = std::clamp(std::min(xk + 0.5 * w.step, hi) - std::max(xk - 0.5 * w.step, lo), 0.0, w.step) / w.step;
+          sq += frac * frac * (xk - pk.r_mm) * (xk - pk.r_mm);
+        }
+        pk.r_err_stat_mm = std::sqrt(sq) * out.residual_noise / sw;
+      }
     }
     out.peaks.push_back(pk);
+  }
+  for (size_t i = 0; i < out.peaks.size(); ++i) {
+    Peak& pk = out.peaks[i];
+    pk.r_err_sys_mm = systematic_error(out.peaks, i, area_ratio[i]);
+    pk.r_err_mm = std::hypot(pk.r_err_stat_mm, pk.r_err_sys_mm);
   }
   return out;
 }

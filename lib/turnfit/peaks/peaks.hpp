@@ -55,7 +55,11 @@ std::string peak_flag_string(unsigned flags);
 struct Peak {
   int turn = 0;           ///< turn number (first turn + turns before it, plus numbers skipped at gaps)
   double r_mm = 0;        ///< position on the profile's position axis (see turnfit-peakfind(1))
-  double r_err_mm = 0;    ///< statistical 1-sigma of r_mm from the fit (noise only)
+  double r_err_mm = 0;    ///< total 1-sigma of r_mm: statistical and systematic parts (turnfit-peakfind(1), UNCERTAINTY)
+  double r_err_stat_mm = 0;  ///< statistical 1-sigma of r_mm (the readings' noise only)
+  double r_err_sys_mm = 0;   ///< systematic 1-sigma of r_mm (shape, overlap with neighbours, flags)
+  double r_fit_mm = 0;    ///< the fitted Gaussian centre (r_mm is the deblended centroid unless --position fit)
+  int turns = 1;          ///< turns this row stands for (more than 1 only for a wide peak)
   double height = 0;      ///< fitted amplitude above the baseline (intensity units)
   double area = 0;        ///< fitted area above the baseline (intensity * mm)
   double width_mm = 0;    ///< fitted rms width
@@ -83,7 +87,8 @@ struct PeakResult {
   double smooth_mm = 0;          ///< smoothing used
   double baseline_at0 = 0;       ///< baseline at the first reading
   double baseline_slope = 0;     ///< baseline slope per mm
-  double noise = 0;              ///< rms noise of one reading (robust estimate)
+  double noise = 0;              ///< rms noise of one reading (robust estimate, for the detector's thresholds)
+  double residual_noise = 0;     ///< rms noise of one reading left by the fit (for r_err_stat_mm; UNCERTAINTY)
   double scale = 0;              ///< P: tallest smoothed peak above the baseline
   int candidates = 0;            ///< downward zero-crossings of the smoothed derivative
   int rejected = 0;              ///< candidates below a threshold or without prominence

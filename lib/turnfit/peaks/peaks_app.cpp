@@ -126,10 +126,10 @@ void write_peaks_csv(std::ostream& os, const std::string& probe, int first_turn,
                 "smooth_mm=%.6g baseline=%.6g%+.6g*(x-x0) noise=%.4g scale=%.6g candidates=%d rejected=%d dropped=%d\n",
                 probe.c_str(), first_turn, r.peaks.size(), merged, flagged, r.skipped_turns, ambiguous, cross,
                 r.smooth_mm, r.baseline_at0, r.baseline_slope, r.noise, r.scale, r.candidates, r.rejected, r.dropped);
-  os << buf << "probe,turn,r_mm,height,area,width_mm,flag\n";
+  os << buf << "probe,turn,r_mm,height,area,width_mm,r_err_mm,flag\n";
   for (const auto& p : r.peaks) {
-    std::snprintf(buf, sizeof buf, "%s,%d,%.6f,%.6g,%.6g,%.6f,%s\n", probe.c_str(), p.turn, p.r_mm, p.height, p.area,
-                  p.width_mm, peak_flag_string(p.flags).c_str());
+    std::snprintf(buf, sizeof buf, "%s,%d,%.6f,%.6g,%.6g,%.6f,%.6f,%s\n", probe.c_str(), p.turn, p.r_mm, p.height,
+                  p.area, p.width_mm, p.r_err_mm, peak_flag_string(p.flags).c_str());
     os << buf;
   }
 }
@@ -146,6 +146,7 @@ void write_peaks_json(std::ostream& os, const std::string& probe, int first_turn
   doc["smooth_mm"] = r.smooth_mm;
   doc["baseline"] = {{"at_first_reading", r.baseline_at0}, {"slope_per_mm", r.baseline_slope}};
   doc["noise"] = r.noise;
+  doc["residual_noise"] = r.residual_noise;
   doc["scale"] = r.scale;
   doc["candidates"] = r.candidates;
   doc["rejected"] = r.rejected;
@@ -174,6 +175,10 @@ void write_peaks_json(std::ostream& os, const std::string& probe, int first_turn
     arr.push_back({{"turn", p.turn},
                    {"r_mm", p.r_mm},
                    {"r_err_mm", p.r_err_mm},
+                   {"r_err_stat_mm", p.r_err_stat_mm},
+                   {"r_err_sys_mm", p.r_err_sys_mm},
+                   {"r_fit_mm", p.r_fit_mm},
+                   {"turns", p.turns},
                    {"height", p.height},
                    {"area", p.area},
                    {"width_mm", p.width_mm},
