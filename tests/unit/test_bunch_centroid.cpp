@@ -173,6 +173,7 @@ TEST_CASE("turn-pattern problem: the \"bunch\" key", "[bunch][turn-problem]") {
   std::vector<double> x = c->start();
   x[0] += 1.0;
   const double moved = c->update_centroid_shift(x, 2);
+  INFO("rinit + 1 mm moves the shift by " << moved << " mm");
   CHECK(moved > 0);
   CHECK(moved < 0.05);
   CHECK(c->update_centroid_shift(x, 1) == 0);  // deterministic, whatever the thread count

@@ -294,6 +294,31 @@ void minimax_polish(const TurnPatternProblem& p, const Residuals& res, std::vect
   }
 }
 
+/// The per-turn scatter s >= 0 beyond the peaks' own uncertainties e_i that makes
+/// sum r_i^2 / (s^2 + e_i^2) = dof (chi2 per degree of freedom 1): the sum falls as s grows, so
+/// bisection on s^2 between 0 and sum r^2 / dof finds it; 0 when the peaks' uncertainties alone
+/// already leave chi2 below dof.
+double scatter_beyond(const std::vector<double>& r2, const std::vector<double>& e2, double dof) {
+  auto chi2 = [&](double s2) {
+    double c = 0;
+    for (size_t i = 0; i < r2.size(); ++i) c += r2[i] / (s2 + e2[i]);
+    return c;
+  };
+  double hi = 0;
+  for (double v : r2) hi += v;
+  hi /= dof;
+  if (!(hi > 0)) return 0;
+  double lo = 0;
+  bool zero_ok = true;
+  for (double e : e2) zero_ok = zero_ok && e > 0;
+  if (zero_ok && chi2(0) <= dof) return 0;
+  for (int it = 0; it < 200 && hi - lo > 1e-12 * hi; ++it) {
+    const double mid = 0.5 * (lo + hi);
+    (chi2(mid) > dof ? lo : hi) = mid;
+  }
+  return std::sqrt(0.5 * (lo + hi));
+}
+
 std::string fmt(double v, int digits = 3) {
   char b[48];
   std::snprintf(b, sizeof b, "%.*g", digits, v);
@@ -443,19 +468,35 @@ LocalSearchResult local_search(TurnPatternProblem& p, const std::vector<double>&
   const TurnTable& meas = p.measured();
   const size_t nmeas = meas.points.size();
 
-  // Peak-position uncertainty: the problem's, else the wire step / sqrt(12) for the first pass.
+  // Peak-position uncertainty: the problem's; else each peak's own (peakfind's r_err_mm, 0 when
+  // the peaks have none) and a per-turn scatter per probe added in quadrature, the scatter first
+  // the wire step / sqrt(12), then estimated from the converged residuals.
   std::vector<double> sigma = p.sigma_mm();
   const bool estimate = sigma.empty();
+  std::vector<double> peak_e2(nmeas, 0);  // peakfind's uncertainty squared
+  std::vector<double> scatter;            // per probe
+  auto sigma_from_scatter = [&] {
+    for (size_t q = 0; q < meas.probes.size(); ++q) {
+      auto [b, e] = meas.probe_range(static_cast<int>(q));
+      for (size_t i = b; i < e; ++i) sigma[i] = std::sqrt(scatter[q] * scatter[q] + peak_e2[i]);
+    }
+  };
   if (estimate) {
     sigma.assign(nmeas, 0);
+    for (size_t i = 0; i < nmeas; ++i) {
+      const double e = meas.points[i].r_err_mm;
+      if (std::isfinite(e) && e > 0) {
+        peak_e2[i] = e * e;
+        ++out.peak_uncertainties;
+      }
+    }
     for (size_t q = 0; q < meas.probes.size(); ++q) {
       double step = 0;
       for (const auto& pr : p.machine().probes)
         if (pr.name == meas.probes[q]) step = pr.step_mm;
-      if (!(step > 0)) step = 0.5;
-      auto [b, e] = meas.probe_range(static_cast<int>(q));
-      for (size_t i = b; i < e; ++i) sigma[i] = step / std::sqrt(12.0);
+      scatter.push_back((step > 0 ? step : 0.5) / std::sqrt(12.0));
     }
+    sigma_from_scatter();
   }
 
   size_t own_evaluations = 0;  // designs simulated here, outside the fit's residuals
@@ -530,26 +571,28 @@ LocalSearchResult local_search(TurnPatternProblem& p, const std::vector<double>&
       for (size_t i = 0; i < nmeas; ++i) nmatched += r1.ok && r1.matched[i];
       for (size_t q = 0; q < meas.probes.size(); ++q) {
         auto [b, e] = meas.probe_range(static_cast<int>(q));
-        double ss = 0;
-        size_t np = 0;
+        std::vector<double> r2, e2;
         for (size_t i = b; i < e; ++i)
           if (r1.ok && r1.matched[i]) {
-            ss += r1.delta_mm[i] * r1.delta_mm[i];
-            ++np;
+            r2.push_back(r1.delta_mm[i] * r1.delta_mm[i]);
+            e2.push_back(peak_e2[i]);
           }
-        const double dof = static_cast<double>(np) - static_cast<double>(n) * np / std::max<size_t>(nmatched, 1);
-        const double sp = np > 0 && dof > 0.5 ? std::sqrt(ss / dof) : sigma[b];
-        moved = moved || std::fabs(sp - sigma[b]) > 0.1 * sigma[b];
-        est.push_back(sp);
+        const double np = static_cast<double>(r2.size());
+        const double dof = np - static_cast<double>(n) * np / static_cast<double>(std::max<size_t>(nmatched, 1));
+        est.push_back(np > 0 && dof > 0.5 ? scatter_beyond(r2, e2, dof) : scatter[q]);
+      }
+      // Moved: a turn's sigma changes by more than 10 %.
+      for (size_t q = 0; q < meas.probes.size(); ++q) {
+        auto [b, e] = meas.probe_range(static_cast<int>(q));
+        for (size_t i = b; i < e && !moved; ++i)
+          moved = std::fabs(std::sqrt(est[q] * est[q] + peak_e2[i]) - sigma[i]) > 0.1 * sigma[i];
       }
     }
     // The last pass's weights are within 10 % of these and its shift within a tenth of sigma: keep them.
     if (!shift_moved && (!estimate || (pass > 2 && !moved))) break;
     if (estimate) {
-      for (size_t q = 0; q < meas.probes.size(); ++q) {
-        auto [b, e] = meas.probe_range(static_cast<int>(q));
-        for (size_t i = b; i < e; ++i) sigma[i] = est[q];
-      }
+      scatter = est;
+      sigma_from_scatter();
       out.sigma_mm = est;
     }
     set_sigma(sigma);  // drops the residuals cached under the old weights and shift
@@ -558,8 +601,14 @@ LocalSearchResult local_search(TurnPatternProblem& p, const std::vector<double>&
     out.sigma_passes = pass;
   }
   if (estimate) {
-    out.sigma_source = "estimated per probe from the converged residuals (chi2 per degree of freedom 1), re-estimated "
-                       "until it moves by less than 10 %; first pass weighted by each probe's wire step / sqrt(12)";
+    out.sigma_source = out.peak_uncertainties
+                           ? "each peak's own uncertainty (the peaks' r_err_mm) and a per-turn scatter per probe in "
+                             "quadrature; the scatter estimated from the converged residuals (chi2 per degree of "
+                             "freedom 1), re-estimated until sigma moves by less than 10 %; first pass: the wire "
+                             "step / sqrt(12)"
+                           : "estimated per probe from the converged residuals (chi2 per degree of freedom 1), "
+                             "re-estimated until it moves by less than 10 %; first pass weighted by each probe's wire "
+                             "step / sqrt(12)";
   } else {
     for (size_t q = 0; q < meas.probes.size(); ++q) out.sigma_mm.push_back(sigma[meas.probe_range(static_cast<int>(q)).first]);
     out.sigma_source = "problem file (sigma_mm)";

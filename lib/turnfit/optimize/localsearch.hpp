@@ -70,7 +70,10 @@ struct LocalSearchResult {
   std::vector<double> singular_values;  ///< of the data's Jacobian, variables scaled to their bounds
   std::vector<std::string> identifiability;  ///< what the data do not determine, in words
   std::vector<std::string> sigma_probes;     ///< probes, in measured order
-  std::vector<double> sigma_mm;              ///< peak-position uncertainty used per probe
+  /// Peak-position uncertainty used per probe: the problem's; or, estimated, the per-turn
+  /// scatter that adds in quadrature to each peak's own uncertainty (the peaks' r_err_mm).
+  std::vector<double> sigma_mm;
+  size_t peak_uncertainties = 0;             ///< measured turns whose peaks carry their own uncertainty
   std::string sigma_source;                  ///< "problem file" or how it was estimated
   int sigma_passes = 1;                      ///< fit passes (each estimate of sigma, or of the centroid shift, adds one)
   /// The bunch's centroid shift (TurnPatternProblem, "centroid" mode): recomputed at the start
@@ -115,10 +118,12 @@ FitSummary summarize(const TurnPatternResult& r, const std::vector<double>& sigm
 
 /// Fits the problem's variables from x0 by bounded Levenberg-Marquardt on the residuals
 /// (model - measured) / sigma of every measured turn, with the problem's priors and the weak
-/// prior. Without the problem's sigma_mm, a first pass weighs each probe by its wire step /
-/// sqrt(12) (the readout's resolution); the uncertainty is then estimated per probe from the
-/// converged residuals (chi2 per degree of freedom 1) and a second pass fits with it, and again
-/// (at most 4 passes) while an estimate moves by more than 10 %.
+/// prior. Without the problem's sigma_mm, sigma_i^2 = s_p^2 + e_i^2: e_i the peak's own
+/// uncertainty (the peaks file's r_err_mm, which turnfit-peakfind makes large for merged and
+/// other doubtful peaks; 0 without the column) and s_p a per-turn scatter per probe, in a first
+/// pass the wire step / sqrt(12) (the readout's resolution), then estimated from the converged
+/// residuals (chi2 per degree of freedom 1); a second pass fits with it, and again (at most 4
+/// passes) while a sigma moves by more than 10 %.
 /// Then, with settings.minimax, the minimax polish: from the least-squares result, steps that
 /// minimize the largest |residual| [mm] of the model linearized by the Jacobian (Lawson's
 /// iteratively reweighted least squares, with a ridge toward the current design that acts as a

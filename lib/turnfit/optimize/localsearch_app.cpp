@@ -221,7 +221,10 @@ nlohmann::json localsearch_report(const TurnPatternProblem& p, const LocalSearch
   nlohmann::json j = report_head(p, "lm", start, provenance);
   nlohmann::json sg = nlohmann::json::object();
   for (size_t q = 0; q < r.sigma_probes.size(); ++q) sg[r.sigma_probes[q]] = jnum(r.sigma_mm[q]);
-  j["sigma_mm"] = {{"source", r.sigma_source}, {"per_probe", sg}, {"passes", r.sigma_passes}};
+  j["sigma_mm"] = {{"source", r.sigma_source},
+                   {"per_probe", sg},
+                   {"peak_uncertainties", r.peak_uncertainties},
+                   {"passes", r.sigma_passes}};
   if (!p.bunch_nodes().empty()) {
     j["bunch"]["updates"] = r.centroid_updates;
     j["bunch"]["last_change_mm"] = jnum(r.centroid_change_mm);
