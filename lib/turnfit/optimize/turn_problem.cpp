@@ -329,52 +329,29 @@ CentroidShift TurnPatternProblem::centroid_shift(const std::vector<double>& x, u
   const Machine m = machine_at(x);
   const TrackModel model = make_track_model(m, {}, &files_);
   const Injection inj = effective_injection(m);
-  // Particle 0 is the reference, then the nodes; each one's crossings as [probe][turn - 1].
-  const size_t np = model.probes.size(), n = nodes_.size() + 1;
-  std::vector<std::vector<std::vector<double>>> r(n, std::vector<std::vector<double>>(np));
-  std::vector<std::string> failed(n);
-  parallel_for(n, threads, [&](size_t i, unsigned) {
-    try {
-      const ParticleState s0 = i == 0 ? injection_state(inj, m.particle.mass_MeV)
-                                      : offset_state(inj, m.particle.mass_MeV, model.rf_MHz, nodes_[i - 1].offset);
-      std::vector<TurnRecord> turns;
-      track_particle(model, s0, settings_, turns);
-      for (const auto& t : turns) {
-        auto& v = r[i][static_cast<size_t>(t.probe)];
-        const auto k = static_cast<size_t>(t.turn - 1);
-        if (v.size() <= k) v.resize(k + 1, std::nan(""));
-        v[k] = t.r_mm;
-      }
-    } catch (const Error& e) {
-      failed[i] = e.what();
-    }
-  });
-  if (!failed[0].empty()) throw Error(ExitCode::data, file_ + ": the bunch's centroid shift: " + failed[0]);
-  out.nodes = nodes_.size();
-  out.shift_mm.resize(np);
-  double ss = 0;
-  for (size_t p = 0; p < np; ++p) {
-    out.shift_mm[p].assign(r[0][p].size(), std::nan(""));
-    for (size_t k = 0; k < r[0][p].size(); ++k) {
-      if (std::isnan(r[0][p][k])) continue;
-      double mean = 0;
-      bool all = true;
-      for (size_t i = 1; i < n && all; ++i) {
-        // A node that could not start (a spread that leaves no energy) or missed this turn.
-        all = failed[i].empty() && k < r[i][p].size() && !std::isnan(r[i][p][k]);
-        if (all) mean += nodes_[i - 1].weight * r[i][p][k];
-      }
-      if (!all) {
-        ++out.unknown;
-        continue;
-      }
-      const double d = mean - r[0][p][k];
-      out.shift_mm[p][k] = d;
-      ++out.known;
-      ss += d * d;
-      out.max_abs_mm = std::max(out.max_abs_mm, std::fabs(d));
-    }
+  CentroidTurns ct;
+  try {
+    ct = centroid_turns(model, injection_state(inj, m.particle.mass_MeV), inj, m.particle.mass_MeV, nodes_, settings_,
+                        threads);
+  } catch (const Error& e) {
+    throw Error(ExitCode::data, file_ + ": the bunch's centroid shift: " + e.what());
   }
+  out.nodes = nodes_.size();
+  out.shift_mm.resize(model.probes.size());
+  double ss = 0;
+  for (size_t c = 0; c < ct.reference.size(); ++c) {
+    const TurnRecord& t = ct.reference[c];
+    auto& v = out.shift_mm[static_cast<size_t>(t.probe)];
+    const auto k = static_cast<size_t>(t.turn - 1);
+    if (v.size() <= k) v.resize(k + 1, std::nan(""));
+    if (!ct.known[c]) continue;
+    const double d = ct.centre[c].r_mm - t.r_mm;
+    v[k] = d;
+    ss += d * d;
+    out.max_abs_mm = std::max(out.max_abs_mm, std::fabs(d));
+  }
+  out.unknown = ct.unknown;
+  out.known = ct.reference.size() - ct.unknown;
   out.rms_mm = out.known ? std::sqrt(ss / static_cast<double>(out.known)) : 0;
   return out;
 }

@@ -5,6 +5,7 @@
 #include <algorithm>
 #include <atomic>
 #include <cmath>
+#include <exception>
 
 #include <Eigen/Dense>
 
@@ -329,6 +330,82 @@ ParticleState offset_state(const Injection& inj, double mass_MeV, double rf_MHz,
     in.t_ns += o.dphase_deg / (360 * rf_MHz * 1e6) * 1e9;
   }
   return injection_state(in, mass_MeV);
+}
+
+CentroidTurns centroid_turns(const TrackModel& model, const ParticleState& reference, const Injection& inj,
+                             double mass_MeV, const std::vector<QuadratureNode>& nodes, const TrackSettings& settings,
+                             unsigned threads) {
+  CentroidTurns out;
+  const size_t n = nodes.size();
+  // Each node's crossings as [probe][turn - 1] (NaN radius: not crossed).
+  std::vector<std::vector<std::vector<TurnRecord>>> hit(n, std::vector<std::vector<TurnRecord>>(model.probes.size()));
+  std::vector<unsigned char> started(n + 1, 0);
+  std::exception_ptr ref_error;
+  parallel_for(n + 1, threads, [&](size_t i, unsigned) {
+    if (i == n) {  // the reference particle: its errors are the caller's
+      try {
+        out.end = track_particle(model, reference, settings, out.reference);
+      } catch (...) {
+        ref_error = std::current_exception();
+      }
+      return;
+    }
+    ParticleState s0;
+    try {
+      s0 = offset_state(inj, mass_MeV, model.rf_MHz, nodes[i].offset);
+    } catch (const Error&) {
+      return;  // a spread that leaves no energy: this node crosses nowhere
+    }
+    std::vector<TurnRecord> turns;
+    try {
+      track_particle(model, s0, settings, turns);
+    } catch (const Error&) {
+      return;
+    }
+    started[i] = 1;
+    for (const auto& t : turns) {
+      auto& v = hit[i][static_cast<size_t>(t.probe)];
+      const auto k = static_cast<size_t>(t.turn - 1);
+      if (v.size() <= k) {
+        TurnRecord none;
+        none.r_mm = std::nan("");
+        v.resize(k + 1, none);
+      }
+      v[k] = t;
+    }
+  });
+  if (ref_error) std::rethrow_exception(ref_error);
+  out.centre = out.reference;
+  out.known.assign(out.reference.size(), 0);
+  for (size_t c = 0; c < out.reference.size(); ++c) {
+    const TurnRecord& ref = out.reference[c];
+    const auto p = static_cast<size_t>(ref.probe), k = static_cast<size_t>(ref.turn - 1);
+    TurnRecord mean = ref;
+    mean.r_mm = mean.s_mm = mean.t_ns = mean.energy_MeV = 0;
+    double dphase = 0;
+    bool all = n > 0;
+    for (size_t i = 0; i < n && all; ++i) {
+      all = started[i] && k < hit[i][p].size() && !std::isnan(hit[i][p][k].r_mm);
+      if (!all) break;
+      const TurnRecord& t = hit[i][p][k];
+      const double w = nodes[i].weight;
+      mean.r_mm += w * t.r_mm;
+      mean.s_mm += w * t.s_mm;
+      mean.t_ns += w * t.t_ns;
+      mean.energy_MeV += w * t.energy_MeV;
+      dphase += w * std::remainder(t.phase_deg - ref.phase_deg, 360.0);
+    }
+    if (!all) {
+      ++out.unknown;
+      continue;
+    }
+    mean.phase_deg = ref.phase_deg + dphase;
+    if (mean.phase_deg > 180) mean.phase_deg -= 360;
+    if (mean.phase_deg <= -180) mean.phase_deg += 360;
+    out.centre[c] = mean;
+    out.known[c] = 1;
+  }
+  return out;
 }
 
 BunchResult track_bunch(const TrackModel& model, const std::vector<ParticleState>& starts,

@@ -52,6 +52,25 @@ std::vector<QuadratureNode> bunch_quadrature(const Bunch& b);
 /// spread are left out).
 std::vector<QuadratureNode> bunch_quadrature(const std::vector<BunchOffset>& sample);
 
+/// The bunch's centre at each crossing of the reference particle, by a quadrature.
+struct CentroidTurns {
+  std::vector<TurnRecord> reference;  ///< the reference particle's crossings
+  std::vector<TurnRecord> centre;     ///< the same crossings, every column the quadrature's mean
+  std::vector<unsigned char> known;   ///< per crossing: 1 where every node crossed there too
+  size_t unknown = 0;                 ///< crossings some node missed: centre = reference there
+  TrackEnd end;                       ///< how the reference particle's track ended
+};
+
+/// Tracks the reference particle from `reference` and every node of `nodes` (offset from `inj`
+/// as offset_state does) on `threads` threads, and averages each crossing (probe, turn) over the
+/// nodes with their weights: r, s, t and energy directly, the phase as the reference's plus the
+/// mean of each node's difference to it, wrapped to (-180, 180]. Where a node missed the
+/// crossing (lost, short of the last turn, or unable to start) the centre is the reference's
+/// record. Throws what tracking the reference throws.
+CentroidTurns centroid_turns(const TrackModel& model, const ParticleState& reference, const Injection& inj,
+                             double mass_MeV, const std::vector<QuadratureNode>& nodes, const TrackSettings& settings,
+                             unsigned threads);
+
 /// Reads offsets from a CSV file with a header of bunch_columns() names ("-" for stdin);
 /// errors name the file and line.
 std::vector<BunchOffset> read_bunch_file(const std::string& path);

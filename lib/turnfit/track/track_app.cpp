@@ -41,6 +41,9 @@ void add_track_options(CLI::App& app, TrackOptions& o) {
   app.add_option("--particles", o.particles, "Track a bunch of N particles (default: the machine's bunch.particles)")
       ->check(CLI::Range(0, 100000000));
   app.add_option("--bunch", o.bunch, "Bunch from a CSV of offsets (dr_mm,dpr_mrad,dz_mm,dpz_mrad,dE_MeV,dphase_deg)");
+  app.add_flag("--centroid", o.centroid,
+               "Write the bunch's centre at each crossing (a 13-particle quadrature of the machine's bunch or "
+               "--bunch FILE), as a turn-pattern problem predicts what a probe measures");
   app.add_option("--histograms", o.histograms, "Write a probe profile per probe (DIR/<probe>.csv) of the bunch");
   app.add_option("--orbit", o.orbit, "Write the particle's path after every step (CSV; the reference particle of a bunch)");
   cli::add_common_options(app, o.common, cli::kOutput | cli::kThreads | cli::kSeed);
@@ -188,6 +191,27 @@ int run_track(const TrackOptions& o) {
   const int n = o.particles >= 0 ? o.particles : m.bunch ? m.bunch->particles : 0;
   const std::string bfile = !o.bunch.empty() ? o.bunch : m.bunch ? m.bunch->file : std::string();
   const bool bunch = n > 0 || (!bfile.empty() && o.particles != 0);
+  if (o.centroid && o.particles > 0) throw usage_error("--centroid computes the centre without a bunch: not with --particles");
+  if (o.centroid && (!o.kicks.empty() || !o.histograms.empty() || !o.orbit.empty()))
+    throw usage_error("--centroid writes the bunch's centre only: not with --kicks, --histograms or --orbit");
+  if (o.centroid) {
+    std::vector<QuadratureNode> nodes;
+    if (!bfile.empty()) nodes = bunch_quadrature(read_bunch_file(bfile));
+    else if (m.bunch) nodes = bunch_quadrature(*m.bunch);
+    if (nodes.empty())
+      throw data_error(m.path, 0, "/bunch: --centroid needs a bunch with spread: the machine's bunch block "
+                                  "(emittances, sigma_E_MeV, sigma_phase_deg) or --bunch FILE");
+    const CentroidTurns ct = centroid_turns(model, reference, injection, m.particle.mass_MeV, nodes, st,
+                                            cli::resolve_threads(o.common.threads));
+    OutputFile out(o.common.output);
+    write_turns_csv(out.stream(), model, ct.centre, {ct.end}, !o.common.no_provenance);
+    out.commit();
+    if (ct.unknown)
+      cli::warn(o.common, std::to_string(ct.unknown) + " crossings that a particle of the quadrature misses keep the "
+                                                       "reference particle's record");
+    if (ct.end.lost) cli::warn(o.common, ct.end.status);
+    return 0;
+  }
   if (!bunch && !o.bunch.empty()) throw usage_error("--bunch with --particles 0: choose one");
   if (bunch && !o.kicks.empty()) throw usage_error("--kicks records one particle: not with a bunch");
   {

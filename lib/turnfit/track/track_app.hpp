@@ -28,6 +28,7 @@ struct TrackOptions {
   bool opal_compat = false;      ///< OPAL-cycl 2022.1's numerics throughout
   int particles = -1;            ///< bunch size (-1: machine's bunch.particles; 0: one particle)
   std::string bunch;             ///< --bunch FILE: offsets instead of the Gaussian
+  bool centroid = false;         ///< --centroid: the bunch's centre by quadrature, not the reference particle
   std::string histograms;        ///< --histograms DIR: one probe profile per probe
   std::string orbit;             ///< --orbit FILE: the (reference) particle's path, every step
 };
