@@ -12,7 +12,9 @@
 #include <sstream>
 
 #include "../support.hpp"
+#include "turnfit/io/csv.hpp"
 #include "turnfit/io/json.hpp"
+#include "turnfit/metrics/metrics.hpp"
 #include "turnfit/peaks/peaks.hpp"
 #include "turnfit/peaks/peaks_app.hpp"
 #include "turnfit/synth/synth.hpp"
@@ -677,6 +679,25 @@ TEST_CASE("peaks: peakfind writes the peaks table and its JSON form", "[peaks]")
 
   o.probe = "a,b";
   CHECK(error_code([&] { std::ostringstream x; peakfind(prof, o, x); }) == 64);
+}
+
+TEST_CASE("peaks: the r_err_mm column reads back into a turn table (metrics), and is NaN without it", "[peaks]") {
+  const auto truth = falling_separations(2100, 20, 6, 12);
+  const auto syn = make_profile(truth, 1.5, 2090, truth.back() + 10, 0.5, 0.002, 4);
+  const PeakResult r = find_peaks(syn.x, syn.y, PeakSettings{}, 9);
+  std::ostringstream os;
+  write_peaks_csv(os, "RRX", 9, r, false);
+  const TurnTable t = turn_table_from_csv(CsvTable::parse(os.str(), "peaks.csv"));
+  REQUIRE(t.points.size() == r.peaks.size());
+  for (size_t i = 0; i < r.peaks.size(); ++i) {
+    CHECK(t.points[i].turn == r.peaks[i].turn);
+    CHECK(t.points[i].r_err_mm == Approx(r.peaks[i].r_err_mm).epsilon(0).margin(5e-7));  // printed to 1e-6 mm
+    CHECK(t.points[i].r_err_mm > 0);
+  }
+  const TurnTable old = turn_table_from_csv(
+      CsvTable::parse("probe,turn,r_mm,height,area,width_mm,flag\nRRX,9,2100,1,1,1,ok\n", "old.csv"));
+  REQUIRE(old.points.size() == 1);
+  CHECK(std::isnan(old.points[0].r_err_mm));
 }
 
 namespace {

@@ -865,7 +865,7 @@ Numbering number_turns(const std::vector<Gauss>& g, const PeakSettings& s) {
 
 // The systematic part of a position's uncertainty (turnfit-peakfind(1), UNCERTAINTY). Calibrated
 // blind on turnfit-synth truths of ring8 (bench/peak_pulls.py, bench/RESULTS.md): the constants
-// marked "calibrated" were tuned on master seeds 7001-7003 and 7011 and checked on others.
+// marked "calibrated" were tuned on master seeds 7001-7003 and checked on 8101, 8102 and 8111.
 constexpr double kShapeFloor = 0.003;  ///< an isolated turn: fraction of its width (calibrated: 0.0029 RRI2, 0.0031 RRL)
 constexpr double kOverlap = 6;         ///< a neighbour at d: kOverlap (s_pair/d)^4 of the width (calibrated)
 constexpr double kOverlapPower = 4;    ///< (calibrated: 3.9 from the binned errors, 4 by the pulls)

@@ -37,12 +37,12 @@ int run_peakfind(const PeakfindOptions& o);
 void warn_numbering_doubts(const cli::CommonOptions& common, const std::string& probe, const std::string& source,
                            const PeakResult& r);
 
-/// Writes peaks as CSV: probe,turn,r_mm,height,area,width_mm,flag (architecture.md's peaks table
-/// plus the flag), after '#' provenance and a '#' summary line.
+/// Writes peaks as CSV: probe,turn,r_mm,height,area,width_mm,r_err_mm,flag (architecture.md's peaks
+/// table plus the total position uncertainty and the flag), after '#' provenance and a '#' summary line.
 void write_peaks_csv(std::ostream& os, const std::string& probe, int first_turn, const PeakResult& r,
                      bool provenance);
 
-/// Writes peaks as one JSON document (the summary, and per peak also r_err_mm).
+/// Writes peaks as one JSON document (the summary; per peak also r_err_mm, the CSV's, and its parts).
 void write_peaks_json(std::ostream& os, const std::string& probe, int first_turn, const PeakResult& r,
                       bool provenance);
 
