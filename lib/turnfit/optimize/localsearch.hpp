@@ -38,6 +38,23 @@ struct LocalSearchSettings {
   int minimax_steps = 10;
   /// Called after each Levenberg-Marquardt iteration with (pass, iteration, cost); may be empty.
   std::function<void(int, int, double)> progress;
+  /// For tests: at each new sigma pass, also form the Jacobian anew at the design where the kept
+  /// (reweighted) one stands, and report the largest difference (costs a Jacobian a pass).
+  bool check_kept_jacobian = false;
+};
+
+/// One Levenberg-Marquardt iteration (Ceres' iteration summary and the design it stands on),
+/// for the report's trace: how many evaluations a given RMS took, and where they went.
+struct LocalSearchIteration {
+  int pass = 1;             ///< sigma pass (1-4)
+  int iteration = 0;        ///< Ceres' iteration in the pass (0: the pass's start)
+  size_t evaluations = 0;   ///< designs simulated so far, all passes (the start's and this design's Jacobian included)
+  double cost = 0;          ///< Ceres' cost, chi2 / 2 with this pass's sigma, priors included
+  double rms_mm = 0, linf_mm = 0;  ///< the current design's turns (matched ones) against the measurement [mm]
+  size_t matched = 0;       ///< measured turns the current design matched
+  bool accepted = true;     ///< the iteration's step was taken (a rejected one costs one design)
+  double relative_decrease = 0;     ///< actual / predicted cost decrease of the iteration's step
+  double trust_region_radius = 0;   ///< Ceres' radius after the iteration
 };
 
 /// The turn residuals of one design, summarized.
@@ -80,6 +97,10 @@ struct LocalSearchResult {
   std::string termination;            ///< Ceres' word for how the last pass ended
   size_t failed_evaluations = 0;      ///< designs that could not be simulated (penalized)
   double wall_s = 0, cpu_s = 0;       ///< time taken (CPU: every thread of the process)
+  std::vector<LocalSearchIteration> trace;  ///< every Levenberg-Marquardt iteration, all passes
+  int kept_jacobians = 0;             ///< passes that began from the last pass's Jacobian, reweighted
+  /// With settings.check_kept_jacobian: the largest |kept - fresh| entry over the largest |fresh|.
+  double kept_jacobian_difference = 0;
   /// The minimax polish (settings.minimax): its design (x when it found nothing better), its
   /// summary, accepted steps and the designs it simulated (included in `evaluations`).
   std::vector<double> x_minimax;

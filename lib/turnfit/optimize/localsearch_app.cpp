@@ -229,9 +229,25 @@ nlohmann::json localsearch_report(const TurnPatternProblem& p, const LocalSearch
   j["evaluations"] = r.evaluations;
   j["failed_evaluations"] = r.failed_evaluations;
   j["iterations"] = r.iterations;
+  j["jacobians"] = r.jacobians;
+  j["kept_jacobians"] = r.kept_jacobians;
   j["termination"] = r.termination;
   j["wall_s"] = r.wall_s;
   j["cpu_s"] = r.cpu_s;
+  // Every Levenberg-Marquardt iteration: how many evaluations a given RMS took.
+  nlohmann::json trace = nlohmann::json::array();
+  for (const auto& t : r.trace)
+    trace.push_back({{"pass", t.pass},
+                     {"iteration", t.iteration},
+                     {"evaluations", t.evaluations},
+                     {"cost", jnum(t.cost)},
+                     {"rms_mm", jnum(t.rms_mm)},
+                     {"linf_mm", jnum(t.linf_mm)},
+                     {"matched", t.matched},
+                     {"accepted", t.accepted},
+                     {"relative_decrease", jnum(t.relative_decrease)},
+                     {"trust_region_radius", jnum(t.trust_region_radius)}});
+  j["trace"] = trace;
   nlohmann::json vars = nlohmann::json::array();
   for (const auto& v : r.variables)
     vars.push_back({{"name", v.name},
