@@ -10,7 +10,6 @@
 #include <atomic>
 #include <chrono>
 #include <cmath>
-#include <cstdlib>
 #include <ctime>
 #include <mutex>
 
@@ -77,6 +76,10 @@ struct Residuals {
   mutable Point trial;
   // Ceres' current design (where it last asked for the Jacobian), for the trace.
   mutable Point current;
+  int max_frozen = 0;           // consecutive steps on one Jacobian (LocalSearchSettings::frozen_steps)
+  mutable bool stale = false;   // the kept Jacobian was formed at an earlier design (frozen steps)
+  mutable int frozen_run = 0;   // frozen steps since the last Jacobian formed
+  mutable size_t frozen_steps = 0;
 
   explicit Residuals(const TurnPatternProblem& problem) : p(problem) {}
 
@@ -148,6 +151,7 @@ struct Residuals {
     {
       std::lock_guard<std::mutex> lock(mu);
       if (trial.u == u) at = trial;
+      else if (kept.u == u) at = kept;  // a stale Jacobian's design: its residuals are known
     }
     at.u = u;
     Eigen::MatrixXd J = fd_jacobian(at);
@@ -155,6 +159,31 @@ struct Residuals {
     kept = std::move(at);
     jac = std::move(J);
     ++jacobians;
+    stale = false;
+    frozen_run = 0;
+  }
+
+  /// At Ceres' accepted trial point u: keep the last Jacobian (frozen, u's residuals from the
+  /// trial: one design for the step) when the step to u lowered the cost by at least half of
+  /// what that Jacobian predicted, at most max_frozen times in a row. True if it did; else a
+  /// Jacobian is formed at u. Steps along a curved valley are short and well predicted, and the
+  /// Jacobian changes little from one to the next: a fresh one for each costs n designs for
+  /// nothing (the trace: rho 0.5-1 over tens of iterations of 49 designs each).
+  bool freeze_at(const std::vector<double>& u) const {
+    std::lock_guard<std::mutex> lock(mu);
+    if (frozen_run >= max_frozen || trial.u != u || kept.res.size() != nres || trial.res.size() != nres) return false;
+    Eigen::VectorXd r0 = Eigen::Map<const Eigen::VectorXd>(kept.res.data(), static_cast<Eigen::Index>(nres));
+    Eigen::VectorXd r1 = Eigen::Map<const Eigen::VectorXd>(trial.res.data(), static_cast<Eigen::Index>(nres));
+    Eigen::VectorXd du(static_cast<Eigen::Index>(n));
+    for (size_t j = 0; j < n; ++j) du(static_cast<Eigen::Index>(j)) = u[j] - kept.u[j];
+    const double pred = r0.squaredNorm() - (r0 + jac * du).squaredNorm();
+    const double act = r0.squaredNorm() - r1.squaredNorm();
+    if (!(pred > 0) || act < 0.5 * pred) return false;
+    kept = trial;
+    stale = true;
+    ++frozen_run;
+    ++frozen_steps;
+    return true;
   }
 
   /// A new sigma pass at the design u the last pass ended on, after the weights changed from
@@ -163,12 +192,12 @@ struct Residuals {
   /// it was formed at u, is kept with its data rows rescaled by inv_sigma / old_inv_sigma (u did
   /// not move, so d delta / du did not either; the priors' rows keep theirs). Returns whether it
   /// was kept; if not, Ceres forms one at u (from these residuals).
-  bool restart_at(const std::vector<double>& u, const std::vector<double>& old_inv_sigma, bool keep) const {
+  bool restart_at(const std::vector<double>& u, const std::vector<double>& old_inv_sigma) const {
     Point at = evaluate(u);
     std::lock_guard<std::mutex> lock(mu);
     current = at;
     trial = Point();
-    if (!keep || kept.u != u || jac.rows() != static_cast<Eigen::Index>(nres)) {
+    if (kept.u != u || jac.rows() != static_cast<Eigen::Index>(nres)) {
       kept = Point();
       trial = std::move(at);
       return false;
@@ -224,7 +253,7 @@ class TurnCost final : public ceres::CostFunction {
     }
     if (!cached) {
       if (want) {
-        r_.form_jacobian(u);
+        if (!r_.freeze_at(u)) r_.form_jacobian(u);
         std::lock_guard<std::mutex> lock(r_.mu);
         std::copy(r_.kept.res.begin(), r_.kept.res.end(), res);
         r_.current = r_.kept;
@@ -274,6 +303,7 @@ class TraceCallback final : public ceres::IterationCallback {
     t.relative_decrease = it.relative_decrease;
     t.trust_region_radius = it.trust_region_radius;
     r_.current_norms(t.rms_mm, t.linf_mm, t.matched);
+    t.fresh = !r_.stale;
     trace_.push_back(t);
     if (s_.progress) s_.progress(pass_, it.iteration, it.cost);
     return ceres::SOLVER_CONTINUE;
@@ -287,45 +317,9 @@ class TraceCallback final : public ceres::IterationCallback {
   std::vector<LocalSearchIteration>& trace_;
 };
 
-/// EXPERIMENT knobs (TURNFIT_LS_EXP="keep=1,carry=1,radius=1e4,ftol=1,minrel=1e-3,nonmono=0,jacobi=1").
-struct Experiment {
-  bool keep = false, carry = false, nonmono = false, jacobi = true;
-  double radius = 1e4, ftol = 1, minrel = 1e-3;
-  int frozen = 0;
-  double frozen_rho = 0.9;
-};
-Experiment experiment() {
-  Experiment e;
-  const char* env = std::getenv("TURNFIT_LS_EXP");
-  if (!env) return e;
-  std::string t = env;
-  size_t pos = 0;
-  while (pos < t.size()) {
-    size_t c = t.find(',', pos);
-    if (c == std::string::npos) c = t.size();
-    const std::string kv = t.substr(pos, c - pos);
-    const size_t eq = kv.find('=');
-    const std::string k = kv.substr(0, eq);
-    const double v = std::atof(kv.substr(eq + 1).c_str());
-    if (k == "keep") e.keep = v != 0;
-    else if (k == "carry") e.carry = v != 0;
-    else if (k == "nonmono") e.nonmono = v != 0;
-    else if (k == "jacobi") e.jacobi = v != 0;
-    else if (k == "radius") e.radius = v;
-    else if (k == "ftol") e.ftol = v;
-    else if (k == "minrel") e.minrel = v;
-    else if (k == "frozen") e.frozen = static_cast<int>(v);
-    else if (k == "frozen_rho") e.frozen_rho = v;
-    pos = c + 1;
-  }
-  return e;
-}
-
-/// One Levenberg-Marquardt pass from theta (updated in place); `radius`: Ceres' initial trust
-/// region radius.
+/// One Levenberg-Marquardt pass from theta (updated in place).
 ceres::Solver::Summary lm_pass(const Residuals& res, std::vector<double>& theta, const LocalSearchSettings& s, int pass,
-                               double radius, const std::function<size_t()>& count,
-                               std::vector<LocalSearchIteration>& trace, const Experiment& ex) {
+                               const std::function<size_t()>& count, std::vector<LocalSearchIteration>& trace) {
   ceres::Problem problem;
   problem.AddResidualBlock(new TurnCost(res), nullptr, theta.data());
   ceres::Solver::Options o;
@@ -333,14 +327,10 @@ ceres::Solver::Summary lm_pass(const Residuals& res, std::vector<double>& theta,
   o.trust_region_strategy_type = ceres::LEVENBERG_MARQUARDT;
   o.linear_solver_type = ceres::DENSE_QR;
   o.max_num_iterations = s.max_iterations;
-  o.initial_trust_region_radius = radius;
   // Stop when an iteration lowers chi2 by less than 1e-3 of its value per degree of freedom
   // (chi2 = 2 cost): far below anything the noise can tell apart, and the tail of tiny steps
   // beyond it is finite-difference noise.
-  o.min_relative_decrease = ex.minrel;
-  o.use_nonmonotonic_steps = ex.nonmono;
-  o.jacobi_scaling = ex.jacobi;
-  o.function_tolerance = ex.ftol * 1e-3 / std::max(1.0, static_cast<double>(res.nmeas) - static_cast<double>(res.n));
+  o.function_tolerance = 1e-3 / std::max(1.0, static_cast<double>(res.nmeas) - static_cast<double>(res.n));
   o.parameter_tolerance = 1e-9;
   o.gradient_tolerance = 1e-12;
   o.logging_type = ceres::SILENT;
@@ -614,15 +604,24 @@ LocalSearchResult local_search(const TurnPatternProblem& p, const std::vector<do
   for (int k : res.prior_kind) res.nres += k ? 1 : 0;
   res.inv_sigma.resize(nmeas);
   for (size_t i = 0; i < nmeas; ++i) res.inv_sigma[i] = 1 / sigma[i];
-  const Experiment ex = experiment();
+  res.max_frozen = std::max(0, s.frozen_steps);
 
   // The fit's state is theta (see TurnCost); u follows it.
   std::vector<double> theta(n);
   for (size_t j = 0; j < n; ++j) theta[j] = TurnCost::theta_of_u(u[j]);
   const std::function<size_t()> count = [&] { return res.evaluations + own_evaluations; };
-  double radius = ex.radius;
-  ceres::Solver::Summary sum = lm_pass(res, theta, s, 1, radius, count, out.trace, ex);
+  // A pass that ended on a frozen Jacobian ended by that Jacobian's model, not by the cost's: it
+  // goes on from a fresh one (at most 10 times) until it ends on a fresh Jacobian.
+  auto settle = [&](ceres::Solver::Summary& sm, int pass) {
+    for (int k = 0; res.stale && k < 10; ++k) {
+      res.form_jacobian(u_of(theta));
+      sm = lm_pass(res, theta, s, pass, count, out.trace);
+      out.iterations += static_cast<int>(sm.iterations.size());
+    }
+  };
+  ceres::Solver::Summary sum = lm_pass(res, theta, s, 1, count, out.trace);
   out.iterations = static_cast<int>(sum.iterations.size());
+  settle(sum, 1);
   out.sigma_probes = meas.probes;
   if (estimate) {
     // chi2 per degree of freedom 1 per probe: sigma_p^2 = sum dr^2 / (N_p - n N_p / N), from the
@@ -659,7 +658,7 @@ LocalSearchResult local_search(const TurnPatternProblem& p, const std::vector<do
       for (size_t i = 0; i < nmeas; ++i) res.inv_sigma[i] = 1 / sigma[i];
       // The new pass starts where the last one ended: u's residuals evaluated anew, the
       // Jacobian there kept with its rows reweighted.
-      if (res.restart_at(u, old_inv_sigma, ex.keep)) {
+      if (res.restart_at(u, old_inv_sigma)) {
         ++out.kept_jacobians;
         if (s.check_kept_jacobian) {
           Point at;
@@ -671,9 +670,9 @@ LocalSearchResult local_search(const TurnPatternProblem& p, const std::vector<do
               std::max(out.kept_jacobian_difference, (fresh - res.jac).cwiseAbs().maxCoeff() / scale);
         }
       }
-      if (ex.carry && !sum.iterations.empty()) radius = sum.iterations.back().trust_region_radius;
-      sum = lm_pass(res, theta, s, pass, radius, count, out.trace, ex);
+      sum = lm_pass(res, theta, s, pass, count, out.trace);
       out.iterations += static_cast<int>(sum.iterations.size());
+      settle(sum, pass);
       out.sigma_passes = pass;
     }
     out.sigma_source = "estimated per probe from the converged residuals (chi2 per degree of freedom 1), re-estimated "
@@ -695,7 +694,7 @@ LocalSearchResult local_search(const TurnPatternProblem& p, const std::vector<do
   Eigen::MatrixXd J;
   {
     std::lock_guard<std::mutex> lock(res.mu);
-    if (res.kept.u == u) J = res.jac;
+    if (res.kept.u == u && !res.stale) J = res.jac;
   }
   if (J.size() == 0) {
     res.form_jacobian(u);
@@ -746,6 +745,7 @@ LocalSearchResult local_search(const TurnPatternProblem& p, const std::vector<do
   out.evaluations = res.evaluations + own_evaluations + out.minimax_evaluations;
   out.minimax_evaluations += polish_jacobians;
   out.jacobians = res.jacobians;
+  out.frozen_steps = res.frozen_steps;
   out.failed_evaluations = res.failed;
   out.wall_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - wall0).count();
   out.cpu_s = static_cast<double>(std::clock() - cpu0) / CLOCKS_PER_SEC;

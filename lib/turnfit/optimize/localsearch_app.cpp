@@ -44,6 +44,10 @@ void add_localsearch_options(CLI::App& app, LocalSearchOptions& o) {
   app.add_flag("--central", o.settings.central, "Central differences (twice the evaluations per Jacobian)");
   app.add_option("--fd-step", o.settings.fd_step, "Finite-difference step, fraction of each bound range (default 1e-6)")
       ->check(CLI::Range(1e-12, 0.1));
+  app.add_option("--frozen-steps", o.settings.frozen_steps,
+                 "Steps on one Jacobian while each lowers the cost by half of what it predicts, at most this many "
+                 "in a row (default 8; 0: a new Jacobian every step)")
+      ->check(CLI::Range(0, 1000));
   app.add_flag("!--no-minimax", o.settings.minimax,
                "Skip the minimax polish (-o then gets the least-squares design)");
   app.add_option("--minimax-tolerance", o.settings.minimax_tolerance_mm,
@@ -231,6 +235,7 @@ nlohmann::json localsearch_report(const TurnPatternProblem& p, const LocalSearch
   j["iterations"] = r.iterations;
   j["jacobians"] = r.jacobians;
   j["kept_jacobians"] = r.kept_jacobians;
+  j["frozen_steps"] = r.frozen_steps;
   j["termination"] = r.termination;
   j["wall_s"] = r.wall_s;
   j["cpu_s"] = r.cpu_s;
@@ -246,7 +251,8 @@ nlohmann::json localsearch_report(const TurnPatternProblem& p, const LocalSearch
                      {"matched", t.matched},
                      {"accepted", t.accepted},
                      {"relative_decrease", jnum(t.relative_decrease)},
-                     {"trust_region_radius", jnum(t.trust_region_radius)}});
+                     {"trust_region_radius", jnum(t.trust_region_radius)},
+                     {"fresh_jacobian", t.fresh}});
   j["trace"] = trace;
   nlohmann::json vars = nlohmann::json::array();
   for (const auto& v : r.variables)
