@@ -8,7 +8,8 @@
 // figures): 1200-1800 evaluations, 50-75 s on 2 cores, worst turns 0.04-0.12 mm.
 //
 // Usage: bench_localsearch [--seeds 101,102,103] [--amplitude 0.05] [--noise 0.015]
-//                          [--weak-prior 0.1] [--threads 2]
+//                          [--weak-prior 0.1] [--threads 2] [--fd-step H] [--central 0|1]
+//                          [--max-iterations N] [--frozen-steps N]
 #include <chrono>
 #include <cmath>
 #include <cstdio>
@@ -104,6 +105,7 @@ int main(int argc, char** argv) {
     else if (!std::strcmp(argv[i], "--fd-step")) s.fd_step = std::atof(argv[i + 1]);
     else if (!std::strcmp(argv[i], "--central")) s.central = std::atoi(argv[i + 1]) != 0;
     else if (!std::strcmp(argv[i], "--max-iterations")) s.max_iterations = std::atoi(argv[i + 1]);
+    else if (!std::strcmp(argv[i], "--frozen-steps")) s.frozen_steps = std::atoi(argv[i + 1]);
     else {
       std::fprintf(stderr, "unknown option %s\n", argv[i]);
       return 64;
@@ -111,8 +113,8 @@ int main(int argc, char** argv) {
   }
   const std::string dir = std::filesystem::temp_directory_path() / "bench_localsearch";
   std::filesystem::create_directories(dir);
-  std::printf("ring8, 48 variables from nominal, noise %.3f mm, weak prior %.3g, %u threads, fd step %.0e%s\n", noise,
-              s.weak_prior_range, s.threads, s.fd_step, s.central ? " central" : "");
+  std::printf("ring8, 48 variables from nominal, noise %.3f mm, weak prior %.3g, %u threads, fd step %.0e%s, frozen steps %d\n",
+              noise, s.weak_prior_range, s.threads, s.fd_step, s.central ? " central" : "", s.frozen_steps);
   std::printf("%6s %6s %10s %10s %10s %10s %8s %6s %8s %8s %8s %14s %s\n", "seed", "amp", "linf0[mm]", "rms0[mm]",
               "linf[mm]", "rms[mm]", "chi2/dof", "evals", "vs peer", "wall[s]", "cpu[s]", "det in 2sigma", "termination");
   std::printf("       (least-squares columns; the minimax polish after it on the next line)\n");
@@ -121,11 +123,11 @@ int main(int argc, char** argv) {
   for (const auto& [sd, amp] : runs) {
     const Row row = run_truth(sd, amp, noise, s, dir);
     const LocalSearchResult& r = row.r;
-    std::printf("%6llu %6.3f %10.3f %10.3f %10.4f %10.4f %8.3f %6zu %8.2f %8.1f %8.1f %7d/%-6d %s (%d it, %zu J)\n",
+    std::printf("%6llu %6.3f %10.3f %10.3f %10.4f %10.4f %8.3f %6zu %8.2f %8.1f %8.1f %7d/%-6d %s (%d it, %zu J, %zu frozen)\n",
                 static_cast<unsigned long long>(row.seed), row.amplitude, r.before.linf_mm, r.before.rms_mm,
                 r.after.linf_mm, r.after.rms_mm, r.chi2_dof, r.evaluations - r.minimax_evaluations,
                 (r.evaluations - r.minimax_evaluations) / 1500.0, r.wall_s, r.cpu_s,
-                row.within2, row.determined, r.termination.c_str(), r.iterations, r.jacobians);
+                row.within2, row.determined, r.termination.c_str(), r.iterations, r.jacobians, r.frozen_steps);
     std::printf("       minimax polish: worst %.4f mm, RMS %.4f mm, %d steps, %zu more evaluations\n", r.minimax.linf_mm,
                 r.minimax.rms_mm, r.minimax_steps, r.minimax_evaluations);
     std::fflush(stdout);

@@ -43,6 +43,12 @@ FitSummary summarize(const TurnPatternResult& r, const std::vector<double>& sigm
 
 namespace {
 
+/// One design's residuals (weighted, priors after the data) and which measured turns it matched.
+struct Point {
+  std::vector<double> u, res;
+  std::vector<unsigned char> matched;
+};
+
 /// The residuals of the fit and their finite-difference Jacobian, in variables scaled to
 /// their bounds (u = (x - lower) / range, u in [0, 1]).
 struct Residuals {
@@ -59,14 +65,21 @@ struct Residuals {
   bool central = false;
   std::vector<int> prior_kind;     // per variable: 0 none, 1 problem prior, 2 weak
   mutable std::atomic<size_t> evaluations{0}, failed{0};
-  // The last Jacobian computed, and where (the final statistics reuse it).
   mutable std::mutex mu;
-  mutable std::vector<double> jac_u, jac_res;
+  // The kept Jacobian d r / d u and the point it was formed at (Ceres may ask for that point
+  // again, and the final statistics and the next pass reuse it).
+  mutable Point kept;
   mutable Eigen::MatrixXd jac;
   mutable size_t jacobians = 0;
   // The last residual-only evaluation (Ceres' trial point; if it is accepted, the Jacobian is
   // asked for at the same point next).
-  mutable std::vector<double> trial_u, trial_res;
+  mutable Point trial;
+  // Ceres' current design (where it last asked for the Jacobian), for the trace.
+  mutable Point current;
+  int max_frozen = 0;           // consecutive steps on one Jacobian (LocalSearchSettings::frozen_steps)
+  mutable bool stale = false;   // the kept Jacobian was formed at an earlier design (frozen steps)
+  mutable int frozen_run = 0;   // frozen steps since the last Jacobian formed
+  mutable size_t frozen_steps = 0;
 
   explicit Residuals(const TurnPatternProblem& problem) : p(problem) {}
 
@@ -76,73 +89,148 @@ struct Residuals {
     return x;
   }
 
-  /// Residuals of the design at u into out (nres values).
-  void fill(const double* u, double* out) const {
-    const std::vector<double> x = x_of(u);
+  /// The residuals of the design at u (one design simulated).
+  Point evaluate(const std::vector<double>& u) const {
+    Point pt;
+    pt.u = u;
+    pt.res.resize(nres);
+    pt.matched.assign(nmeas, 0);
+    const std::vector<double> x = x_of(u.data());
     const TurnPatternResult r = p.simulate(x);
     ++evaluations;
     if (!r.ok) ++failed;
-    for (size_t i = 0; i < nmeas; ++i)
-      out[i] = (r.ok && r.matched[i] ? r.delta_mm[i] : miss_mm) * inv_sigma[i];
+    for (size_t i = 0; i < nmeas; ++i) {
+      pt.matched[i] = r.ok && r.matched[i];
+      pt.res[i] = (pt.matched[i] ? r.delta_mm[i] : miss_mm) * inv_sigma[i];
+    }
     size_t k = nmeas;
     for (size_t j = 0; j < n; ++j) {
-      if (prior_kind[j] == 1) out[k++] = (x[j] - prior_x0[j]) / prior_sigma_x[j];
-      else if (prior_kind[j] == 2) out[k++] = (u[j] - weak_u0[j]) / weak;
+      if (prior_kind[j] == 1) pt.res[k++] = (x[j] - prior_x0[j]) / prior_sigma_x[j];
+      else if (prior_kind[j] == 2) pt.res[k++] = (u[j] - weak_u0[j]) / weak;
     }
+    return pt;
   }
 
-  /// Residuals at u into res, and the Jacobian d r / d u by finite differences (kept in `jac`,
-  /// with `jac_u` and `jac_res`), its columns evaluated in parallel. `known`: the residuals at u
-  /// when already evaluated (else they are, with the columns). A forward step that would leave
-  /// [0, 1] goes backward instead (and a central difference becomes one-sided there).
-  void fill_with_jacobian(const double* u, double* res, const std::vector<double>* known = nullptr) const {
+  /// The finite-difference Jacobian d r / d u at `at.u`, its columns evaluated in parallel;
+  /// at's residuals are evaluated with them unless already there. A forward step that would
+  /// leave [0, 1] goes backward instead (and a central difference becomes one-sided there).
+  Eigen::MatrixXd fd_jacobian(Point& at) const {
+    const std::vector<double>& u = at.u;
     const size_t ncols = central ? 2 * n : n;
-    std::vector<std::vector<double>> out(ncols + 1, std::vector<double>(nres));
-    if (known) out[0] = *known;
+    std::vector<Point> out(ncols + 1);
+    const bool known = at.res.size() == nres;
+    if (known) out[0] = at;
     std::vector<double> step(n);
     for (size_t j = 0; j < n; ++j) step[j] = u[j] + h <= 1 ? h : -h;
     const size_t first = known ? 1 : 0;
     parallel_for(ncols + 1 - first, threads, [&](size_t i, unsigned) {
       const size_t k = i + first;
-      std::vector<double> v(u, u + n);
+      std::vector<double> v = u;
       if (k > 0) {
         const size_t j = (k - 1) % n;
         v[j] += k - 1 < n ? step[j] : -step[j];
       }
-      fill(v.data(), out[k].data());
+      out[k] = evaluate(v);
     });
-    std::copy(out[0].begin(), out[0].end(), res);
+    at = out[0];
     Eigen::MatrixXd J(nres, n);
     for (size_t j = 0; j < n; ++j) {
       // Central only where both sides lie inside the bounds; one-sided at a bound.
       const bool two = central && u[j] + h <= 1 && u[j] - h >= 0;
       for (size_t i = 0; i < nres; ++i)
-        J(i, j) = two ? (out[1 + j][i] - out[1 + n + j][i]) / (2 * step[j]) : (out[1 + j][i] - out[0][i]) / step[j];
+        J(i, j) = two ? (out[1 + j].res[i] - out[1 + n + j].res[i]) / (2 * step[j])
+                      : (out[1 + j].res[i] - out[0].res[i]) / step[j];
     }
-    std::lock_guard<std::mutex> lock(mu);
-    jac_u.assign(u, u + n);
-    jac_res = out[0];
-    jac = std::move(J);
-    ++jacobians;
+    return J;
   }
 
-  /// Residuals at u (from the trial cache when Ceres evaluated u just before: it asks for the
-  /// Jacobian at a trial point it accepted) into res, and the finite-difference Jacobian there.
-  void jacobian_at(const double* u, double* res) const {
-    std::vector<double> r;
+  /// The Jacobian at u, formed (u's residuals from Ceres' trial point when it is u: Ceres asks
+  /// for the Jacobian at a trial point it accepted) and kept.
+  void form_jacobian(const std::vector<double>& u) const {
+    Point at;
     {
       std::lock_guard<std::mutex> lock(mu);
-      if (!trial_u.empty() && std::equal(trial_u.begin(), trial_u.end(), u)) r = trial_res;
+      if (trial.u == u) at = trial;
+      else if (kept.u == u) at = kept;  // a stale Jacobian's design: its residuals are known
     }
-    if (r.empty()) fill_with_jacobian(u, res);
-    else fill_with_jacobian(u, res, &r);
+    at.u = u;
+    Eigen::MatrixXd J = fd_jacobian(at);
+    std::lock_guard<std::mutex> lock(mu);
+    kept = std::move(at);
+    jac = std::move(J);
+    ++jacobians;
+    stale = false;
+    frozen_run = 0;
+  }
+
+  /// At Ceres' accepted trial point u: keep the last Jacobian (frozen, u's residuals from the
+  /// trial: one design for the step) when the step to u lowered the cost by at least half of
+  /// what that Jacobian predicted, at most max_frozen times in a row. True if it did; else a
+  /// Jacobian is formed at u. Steps along a curved valley are short and well predicted, and the
+  /// Jacobian changes little from one to the next: a fresh one for each costs n designs for
+  /// nothing (the trace: rho 0.5-1 over tens of iterations of 49 designs each).
+  bool freeze_at(const std::vector<double>& u) const {
+    std::lock_guard<std::mutex> lock(mu);
+    if (frozen_run >= max_frozen || trial.u != u || kept.res.size() != nres || trial.res.size() != nres) return false;
+    Eigen::VectorXd r0 = Eigen::Map<const Eigen::VectorXd>(kept.res.data(), static_cast<Eigen::Index>(nres));
+    Eigen::VectorXd r1 = Eigen::Map<const Eigen::VectorXd>(trial.res.data(), static_cast<Eigen::Index>(nres));
+    Eigen::VectorXd du(static_cast<Eigen::Index>(n));
+    for (size_t j = 0; j < n; ++j) du(static_cast<Eigen::Index>(j)) = u[j] - kept.u[j];
+    const double pred = r0.squaredNorm() - (r0 + jac * du).squaredNorm();
+    const double act = r0.squaredNorm() - r1.squaredNorm();
+    if (!(pred > 0) || act < 0.5 * pred) return false;
+    kept = trial;
+    stale = true;
+    ++frozen_run;
+    ++frozen_steps;
+    return true;
+  }
+
+  /// A new sigma pass at the design u the last pass ended on, after the weights changed from
+  /// old_inv_sigma to inv_sigma: u's residuals are evaluated anew (one design; the model's
+  /// residuals may change between passes, not only their weights), and the kept Jacobian, when
+  /// it was formed at u, is kept with its data rows rescaled by inv_sigma / old_inv_sigma (u did
+  /// not move, so d delta / du did not either; the priors' rows keep theirs). Returns whether it
+  /// was kept; if not, Ceres forms one at u (from these residuals).
+  bool restart_at(const std::vector<double>& u, const std::vector<double>& old_inv_sigma) const {
+    Point at = evaluate(u);
+    std::lock_guard<std::mutex> lock(mu);
+    current = at;
+    trial = Point();
+    if (kept.u != u || jac.rows() != static_cast<Eigen::Index>(nres)) {
+      kept = Point();
+      trial = std::move(at);
+      return false;
+    }
+    for (size_t i = 0; i < nmeas; ++i) jac.row(static_cast<Eigen::Index>(i)) *= inv_sigma[i] / old_inv_sigma[i];
+    kept = std::move(at);
+    return true;
+  }
+
+  /// The current design's data residuals in mm over the turns it matched: RMS, worst, count.
+  void current_norms(double& rms_mm, double& linf_mm, size_t& matched) const {
+    std::lock_guard<std::mutex> lock(mu);
+    double ss = 0;
+    rms_mm = linf_mm = std::nan("");
+    matched = 0;
+    if (current.res.size() != nres) return;
+    linf_mm = 0;
+    for (size_t i = 0; i < nmeas; ++i) {
+      if (!current.matched[i]) continue;
+      const double d = current.res[i] / inv_sigma[i];
+      ss += d * d;
+      linf_mm = std::max(linf_mm, std::fabs(d));
+      ++matched;
+    }
+    rms_mm = matched ? std::sqrt(ss / static_cast<double>(matched)) : std::nan("");
   }
 };
 
 /// The cost in unbounded angles theta, u = (sin theta + 1) / 2 (MINUIT's transform for a
 /// bounded variable). Ceres' own bounds would run a projected line search whose every trial
 /// point costs a whole Jacobian; the transform keeps the problem unconstrained, so a rejected
-/// step costs one design.
+/// step costs one design. The fit's state between passes is theta, so that u, and with it the
+/// kept Jacobian's key, is bit for bit the u Ceres asks for next.
 class TurnCost final : public ceres::CostFunction {
  public:
   explicit TurnCost(const Residuals& r) : r_(r) {
@@ -155,21 +243,25 @@ class TurnCost final : public ceres::CostFunction {
     const bool want = jac && jac[0];
     bool cached = false;
     {
-      // Ceres may ask for a point again (the final statistics too): answer from the last Jacobian.
+      // Ceres may ask for a point again (the final statistics too): answer from the kept Jacobian's.
       std::lock_guard<std::mutex> lock(r_.mu);
-      if (!r_.jac_u.empty() && r_.jac_u == u) {
-        std::copy(r_.jac_res.begin(), r_.jac_res.end(), res);
+      if (r_.kept.u == u && r_.kept.res.size() == r_.nres) {
+        std::copy(r_.kept.res.begin(), r_.kept.res.end(), res);
+        if (want) r_.current = r_.kept;
         cached = true;
       }
     }
     if (!cached) {
       if (want) {
-        r_.jacobian_at(u.data(), res);
-      } else {
-        r_.fill(u.data(), res);
+        if (!r_.freeze_at(u)) r_.form_jacobian(u);
         std::lock_guard<std::mutex> lock(r_.mu);
-        r_.trial_u = u;
-        r_.trial_res.assign(res, res + r_.nres);
+        std::copy(r_.kept.res.begin(), r_.kept.res.end(), res);
+        r_.current = r_.kept;
+      } else {
+        Point pt = r_.evaluate(u);
+        std::copy(pt.res.begin(), pt.res.end(), res);
+        std::lock_guard<std::mutex> lock(r_.mu);
+        r_.trial = std::move(pt);
       }
     }
     if (want) {
@@ -189,23 +281,45 @@ class TurnCost final : public ceres::CostFunction {
   const Residuals& r_;
 };
 
-class ProgressCallback final : public ceres::IterationCallback {
+std::vector<double> u_of(const std::vector<double>& theta) {
+  std::vector<double> u(theta.size());
+  for (size_t j = 0; j < theta.size(); ++j) u[j] = TurnCost::u_of_theta(theta[j]);
+  return u;
+}
+
+/// After each iteration: the trace (where the evaluations go) and the progress line.
+class TraceCallback final : public ceres::IterationCallback {
  public:
-  ProgressCallback(const LocalSearchSettings& s, int pass) : s_(s), pass_(pass) {}
+  TraceCallback(const LocalSearchSettings& s, const Residuals& r, int pass, std::function<size_t()> count,
+                std::vector<LocalSearchIteration>& trace)
+      : s_(s), r_(r), pass_(pass), count_(std::move(count)), trace_(trace) {}
   ceres::CallbackReturnType operator()(const ceres::IterationSummary& it) override {
+    LocalSearchIteration t;
+    t.pass = pass_;
+    t.iteration = it.iteration;
+    t.evaluations = count_();
+    t.cost = it.cost;
+    t.accepted = it.iteration == 0 || it.step_is_successful;
+    t.relative_decrease = it.relative_decrease;
+    t.trust_region_radius = it.trust_region_radius;
+    r_.current_norms(t.rms_mm, t.linf_mm, t.matched);
+    t.fresh = !r_.stale;
+    trace_.push_back(t);
     if (s_.progress) s_.progress(pass_, it.iteration, it.cost);
     return ceres::SOLVER_CONTINUE;
   }
 
  private:
   const LocalSearchSettings& s_;
+  const Residuals& r_;
   int pass_;
+  std::function<size_t()> count_;
+  std::vector<LocalSearchIteration>& trace_;
 };
 
-/// One Levenberg-Marquardt pass from u (updated in place).
-ceres::Solver::Summary lm_pass(const Residuals& res, std::vector<double>& u, const LocalSearchSettings& s, int pass) {
-  std::vector<double> theta(res.n);
-  for (size_t j = 0; j < res.n; ++j) theta[j] = TurnCost::theta_of_u(u[j]);
+/// One Levenberg-Marquardt pass from theta (updated in place).
+ceres::Solver::Summary lm_pass(const Residuals& res, std::vector<double>& theta, const LocalSearchSettings& s, int pass,
+                               const std::function<size_t()>& count, std::vector<LocalSearchIteration>& trace) {
   ceres::Problem problem;
   problem.AddResidualBlock(new TurnCost(res), nullptr, theta.data());
   ceres::Solver::Options o;
@@ -222,11 +336,10 @@ ceres::Solver::Summary lm_pass(const Residuals& res, std::vector<double>& u, con
   o.logging_type = ceres::SILENT;
   o.minimizer_progress_to_stdout = false;
   o.num_threads = 1;  // the cost function runs its own evaluations in parallel
-  ProgressCallback cb(s, pass);
+  TraceCallback cb(s, res, pass, count, trace);
   o.callbacks.push_back(&cb);
   ceres::Solver::Summary summary;
   ceres::Solve(o, &problem, &summary);
-  for (size_t j = 0; j < res.n; ++j) u[j] = TurnCost::u_of_theta(theta[j]);
   return summary;
 }
 
@@ -287,8 +400,7 @@ void minimax_polish(const TurnPatternProblem& p, const Residuals& res, std::vect
     ++out.minimax_steps;
     out.minimax_termination = "step limit";
     if (out.minimax_steps == s.minimax_steps) break;
-    std::vector<double> r0(res.nres);
-    res.fill_with_jacobian(u.data(), r0.data(), nullptr);
+    res.form_jacobian(u);
     std::lock_guard<std::mutex> lock(res.mu);
     J = res.jac;
   }
@@ -542,25 +654,34 @@ LocalSearchResult local_search(TurnPatternProblem& p, const std::vector<double>&
   res.weak_u0 = u;
   res.nres = nmeas;
   for (int k : res.prior_kind) res.nres += k ? 1 : 0;
-  auto set_sigma = [&](const std::vector<double>& sg) {
-    res.inv_sigma.resize(nmeas);
-    for (size_t i = 0; i < nmeas; ++i) res.inv_sigma[i] = 1 / sg[i];
-    // Residuals cached under the old weights are no longer the cost's.
-    std::lock_guard<std::mutex> lock(res.mu);
-    res.jac_u.clear();
-    res.trial_u.clear();
-  };
-  set_sigma(sigma);
+  res.inv_sigma.resize(nmeas);
+  for (size_t i = 0; i < nmeas; ++i) res.inv_sigma[i] = 1 / sigma[i];
+  res.max_frozen = std::max(0, s.frozen_steps);
 
-  ceres::Solver::Summary sum = lm_pass(res, u, s, 1);
+  // The fit's state is theta (see TurnCost); u follows it.
+  std::vector<double> theta(n);
+  for (size_t j = 0; j < n; ++j) theta[j] = TurnCost::theta_of_u(u[j]);
+  const std::function<size_t()> count = [&] { return res.evaluations + own_evaluations; };
+  // A pass that ended on a frozen Jacobian ended by that Jacobian's model, not by the cost's: it
+  // goes on from a fresh one (at most 10 times) until it ends on a fresh Jacobian.
+  auto settle = [&](ceres::Solver::Summary& sm, int pass) {
+    for (int k = 0; res.stale && k < 10; ++k) {
+      res.form_jacobian(u_of(theta));
+      sm = lm_pass(res, theta, s, pass, count, out.trace);
+      out.iterations += static_cast<int>(sm.iterations.size());
+    }
+  };
+  ceres::Solver::Summary sum = lm_pass(res, theta, s, 1, count, out.trace);
   out.iterations = static_cast<int>(sum.iterations.size());
+  settle(sum, 1);
   out.sigma_probes = meas.probes;
-  // Then, at the converged design: the centroid shift again (centroid mode), and sigma per
-  // probe with chi2 per degree of freedom 1 (when the problem gives none), sigma_p^2 =
-  // sum dr^2 / (N_p - n N_p / N) from the converged residuals; a pass with them; again while
-  // the shift moves by more than a tenth of the smallest sigma or a sigma estimate by more than
-  // 10 % (a first pass far from the optimum over-estimates it), at most 4 passes in all.
+  // Then, at the converged design: the centroid shift again (centroid mode), and the per-turn
+  // scatter per probe with chi2 per degree of freedom 1 (when the problem gives no sigma), from
+  // the converged residuals, with dof = N_p - n N_p / N; a pass with them; again while the shift
+  // moves by more than a tenth of the smallest sigma or a turn's sigma by more than 10 % (a
+  // first pass far from the optimum over-estimates it), at most 4 passes in all.
   for (int pass = 2; pass <= 4 && (estimate || !p.bunch_nodes().empty()); ++pass) {
+    u = u_of(theta);
     const double shift_change = update_centroid(res.x_of(u.data()));
     const bool shift_moved = shift_change > 0.1 * *std::min_element(sigma.begin(), sigma.end());
     bool moved = false;
@@ -595,9 +716,26 @@ LocalSearchResult local_search(TurnPatternProblem& p, const std::vector<double>&
       sigma_from_scatter();
       out.sigma_mm = est;
     }
-    set_sigma(sigma);  // drops the residuals cached under the old weights and shift
-    sum = lm_pass(res, u, s, pass);
+    const std::vector<double> old_inv_sigma = res.inv_sigma;
+    for (size_t i = 0; i < nmeas; ++i) res.inv_sigma[i] = 1 / sigma[i];
+    // The new pass starts where the last one ended: u's residuals evaluated anew (new weights,
+    // new centroid shift), the Jacobian there kept with its rows reweighted (the shift hardly
+    // depends on the design: its derivatives are left out).
+    if (res.restart_at(u, old_inv_sigma)) {
+      ++out.kept_jacobians;
+      if (s.check_kept_jacobian) {
+        Point at;
+        at.u = u;
+        const Eigen::MatrixXd fresh = res.fd_jacobian(at);
+        std::lock_guard<std::mutex> lock(res.mu);
+        const double scale = std::max(fresh.cwiseAbs().maxCoeff(), 1e-300);
+        out.kept_jacobian_difference =
+            std::max(out.kept_jacobian_difference, (fresh - res.jac).cwiseAbs().maxCoeff() / scale);
+      }
+    }
+    sum = lm_pass(res, theta, s, pass, count, out.trace);
     out.iterations += static_cast<int>(sum.iterations.size());
+    settle(sum, pass);
     out.sigma_passes = pass;
   }
   if (estimate) {
@@ -613,6 +751,7 @@ LocalSearchResult local_search(TurnPatternProblem& p, const std::vector<double>&
     for (size_t q = 0; q < meas.probes.size(); ++q) out.sigma_mm.push_back(sigma[meas.probe_range(static_cast<int>(q)).first]);
     out.sigma_source = "problem file (sigma_mm)";
   }
+  u = u_of(theta);
   out.termination = ceres::TerminationTypeToString(sum.termination_type);
   out.x = res.x_of(u.data());
   const TurnPatternResult fin = simulate(out.x);
@@ -625,11 +764,10 @@ LocalSearchResult local_search(TurnPatternProblem& p, const std::vector<double>&
   Eigen::MatrixXd J;
   {
     std::lock_guard<std::mutex> lock(res.mu);
-    if (res.jac_u == u) J = res.jac;
+    if (res.kept.u == u && !res.stale) J = res.jac;
   }
   if (J.size() == 0) {
-    std::vector<double> r0(res.nres);
-    res.fill_with_jacobian(u.data(), r0.data());
+    res.form_jacobian(u);
     std::lock_guard<std::mutex> lock(res.mu);
     J = res.jac;
   }
@@ -679,6 +817,7 @@ LocalSearchResult local_search(TurnPatternProblem& p, const std::vector<double>&
   out.centroid_max_mm = p.current_centroid_shift().max_abs_mm;
   out.minimax_evaluations += polish_jacobians;
   out.jacobians = res.jacobians;
+  out.frozen_steps = res.frozen_steps;
   out.failed_evaluations = res.failed;
   out.wall_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - wall0).count();
   out.cpu_s = static_cast<double>(std::clock() - cpu0) / CLOCKS_PER_SEC;

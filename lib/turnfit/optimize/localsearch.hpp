@@ -20,6 +20,10 @@ struct LocalSearchSettings {
   /// deterministic and smooth in its inputs to ~1e-12 relative, so small steps are safe.
   double fd_step = 1e-6;
   bool central = false;        ///< central differences (twice the evaluations per Jacobian)
+  /// Steps taken with the last Jacobian (frozen: one design a step instead of n + 1) while each
+  /// lowers the cost by at least half of what that Jacobian predicts, at most this many in a
+  /// row; a pass always ends on a Jacobian formed at its result. 0: a new Jacobian every step.
+  int frozen_steps = 8;
   /// The weak prior toward the start for variables without a sigma: one residual
   /// (u - u_start) / weak_prior_range, u the variable scaled to its bounds. Directions the
   /// data do not determine then stay put instead of drifting to a bound; a determined
@@ -38,6 +42,24 @@ struct LocalSearchSettings {
   int minimax_steps = 10;
   /// Called after each Levenberg-Marquardt iteration with (pass, iteration, cost); may be empty.
   std::function<void(int, int, double)> progress;
+  /// For tests: at each new sigma pass, also form the Jacobian anew at the design where the kept
+  /// (reweighted) one stands, and report the largest difference (costs a Jacobian a pass).
+  bool check_kept_jacobian = false;
+};
+
+/// One Levenberg-Marquardt iteration (Ceres' iteration summary and the design it stands on),
+/// for the report's trace: how many evaluations a given RMS took, and where they went.
+struct LocalSearchIteration {
+  int pass = 1;             ///< sigma pass (1-4)
+  int iteration = 0;        ///< Ceres' iteration in the pass (0: the pass's start)
+  size_t evaluations = 0;   ///< designs simulated so far, all passes (the start's and this design's Jacobian included)
+  double cost = 0;          ///< Ceres' cost, chi2 / 2 with this pass's sigma, priors included
+  double rms_mm = 0, linf_mm = 0;  ///< the current design's turns (matched ones) against the measurement [mm]
+  size_t matched = 0;       ///< measured turns the current design matched
+  bool accepted = true;     ///< the iteration's step was taken (a rejected one costs one design)
+  double relative_decrease = 0;     ///< actual / predicted cost decrease of the iteration's step
+  double trust_region_radius = 0;   ///< Ceres' radius after the iteration
+  bool fresh = true;        ///< the Jacobian at the current design was formed there (not frozen)
 };
 
 /// The turn residuals of one design, summarized.
@@ -90,6 +112,11 @@ struct LocalSearchResult {
   std::string termination;            ///< Ceres' word for how the last pass ended
   size_t failed_evaluations = 0;      ///< designs that could not be simulated (penalized)
   double wall_s = 0, cpu_s = 0;       ///< time taken (CPU: every thread of the process)
+  std::vector<LocalSearchIteration> trace;  ///< every Levenberg-Marquardt iteration, all passes
+  int kept_jacobians = 0;             ///< passes that began from the last pass's Jacobian, reweighted
+  size_t frozen_steps = 0;            ///< steps taken on a frozen Jacobian (settings.frozen_steps)
+  /// With settings.check_kept_jacobian: the largest |kept - fresh| entry over the largest |fresh|.
+  double kept_jacobian_difference = 0;
   /// The minimax polish (settings.minimax): its design (x when it found nothing better), its
   /// summary, accepted steps and the designs it simulated (included in `evaluations`).
   std::vector<double> x_minimax;

@@ -44,6 +44,10 @@ void add_localsearch_options(CLI::App& app, LocalSearchOptions& o) {
   app.add_flag("--central", o.settings.central, "Central differences (twice the evaluations per Jacobian)");
   app.add_option("--fd-step", o.settings.fd_step, "Finite-difference step, fraction of each bound range (default 1e-6)")
       ->check(CLI::Range(1e-12, 0.1));
+  app.add_option("--frozen-steps", o.settings.frozen_steps,
+                 "Steps on one Jacobian while each lowers the cost by half of what it predicts, at most this many "
+                 "in a row (default 8; 0: a new Jacobian every step)")
+      ->check(CLI::Range(0, 1000));
   app.add_flag("!--no-minimax", o.settings.minimax,
                "Skip the minimax polish (-o then gets the least-squares design)");
   app.add_option("--minimax-tolerance", o.settings.minimax_tolerance_mm,
@@ -246,9 +250,27 @@ nlohmann::json localsearch_report(const TurnPatternProblem& p, const LocalSearch
   j["evaluations"] = r.evaluations;
   j["failed_evaluations"] = r.failed_evaluations;
   j["iterations"] = r.iterations;
+  j["jacobians"] = r.jacobians;
+  j["kept_jacobians"] = r.kept_jacobians;
+  j["frozen_steps"] = r.frozen_steps;
   j["termination"] = r.termination;
   j["wall_s"] = r.wall_s;
   j["cpu_s"] = r.cpu_s;
+  // Every Levenberg-Marquardt iteration: how many evaluations a given RMS took.
+  nlohmann::json trace = nlohmann::json::array();
+  for (const auto& t : r.trace)
+    trace.push_back({{"pass", t.pass},
+                     {"iteration", t.iteration},
+                     {"evaluations", t.evaluations},
+                     {"cost", jnum(t.cost)},
+                     {"rms_mm", jnum(t.rms_mm)},
+                     {"linf_mm", jnum(t.linf_mm)},
+                     {"matched", t.matched},
+                     {"accepted", t.accepted},
+                     {"relative_decrease", jnum(t.relative_decrease)},
+                     {"trust_region_radius", jnum(t.trust_region_radius)},
+                     {"fresh_jacobian", t.fresh}});
+  j["trace"] = trace;
   nlohmann::json vars = nlohmann::json::array();
   for (const auto& v : r.variables)
     vars.push_back({{"name", v.name},
