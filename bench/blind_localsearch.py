@@ -19,19 +19,23 @@ For each truth, drawn from a master seed (printed; give it with --master-seed to
    {"machine": ring8, "peaks": [rri2, rrl], "variables": "paper"} (no sigma_mm: estimated, the
    paper's six objectives), as a user would run it.
 5. judge (thresholds from issue 15, the SciPy peer's upper figures on such truths):
-   - least squares (the report's "after"): worst turn <= --max-worst (0.12 mm) and
-     RMS <= --max-rms (0.016 mm). Our noise model is the peer's (the issue's peer ran on
-     turnfit-synth at its default noise), so the issue's figures apply unchanged: peakfind(1)'s
-     ACCURACY gives the peak error alone on such profiles (RRL RMS 0.010 mm, max 0.058 mm), and
-     each row prints it (peaks against truth.json's bunch centres). Each row also prints the
-     effective truth (below) tracked by turnfit-track against the peaks. That is not a floor:
-     synth measures a bunch (2 deg rms phase spread), whose centre runs 0.07 mm (mean; 0.11 max)
-     inside the one reference particle turnfit-track and localsearch follow (measured on the
-     control of master seed 11: 0.003 mm mean with the phase spread set to 0, unchanged without
-     emittance or energy spread), and the 48 variables absorb most of that offset.
-   - the minimax polish (the report's "minimax", what -o writes): worst turn <= --max-worst and
-     not above the least-squares worst turn. Its RMS is printed, not checked: the polish trades
-     RMS for the worst turn by design (the paper's rule lets the l2 rise by 0.01 mm a step).
+   - least squares (the report's "after"; its design tracked with turnfit-track --centroid, the
+     bunch's centre as the problem predicts it): against truth.json's true bunch centres, worst
+     turn <= --max-worst (0.12 mm) and RMS <= --max-rms (0.016 mm): how well the fit recovered
+     the machine. Against the peaks (what the report says): the same figures, or 1.1 times what
+     the effective truth (below) itself reaches there if that is more: a merged pair of turns
+     that peakfind splits 0.4 mm wrong is as wrong for a perfect fit. Our noise model is the
+     peer's (the issue's peer ran on turnfit-synth at its default noise); peakfind(1)'s ACCURACY
+     gives the peak error alone on such profiles, and each row prints it (peaks against
+     truth.json's bunch centres). The model predicts the bunch's centre (turnfit-problem(5),
+     "bunch"): synth measures a bunch with a 2 deg rms phase spread whose centre runs 0.07 mm
+     rms (0.11 max) inside the reference particle; before the problem modelled it (an earlier
+     version of this suite, RESULTS) the 48 variables absorbed that offset and moved by up to
+     130 of their sigmas.
+   - the minimax polish (the report's "minimax", what -o writes): worst turn against the true
+     centres <= --max-worst, against the peaks within the limit above and not above the
+     least-squares worst turn. Its RMS is printed, not checked: the polish trades RMS for the
+     worst turn by design (the paper's rule lets the l2 rise by 0.01 mm a step).
    - uncertainties: every variable the report calls "determined" is compared with its effective
      truth: |value - truth_eff| <= 2 sigma ("value" and "sigma" of the report's variables: the
      least-squares result, where the covariance is computed). Pooled over the random truths at
@@ -47,7 +51,7 @@ For each truth, drawn from a master seed (printed; give it with --master-seed to
      (truth.json's bunch centres at the turns peakfind numbered; start, weak prior and sigma as
      the fit's), whose result is where the model puts the measured bunch without peak noise;
      each determined variable's distance from it in sigma tells whether a miss against the
-     effective truth comes from the sigma or from the bunch's offset (see above).
+     effective truth comes from the sigma or from the peaks.
    Exit status 0 when every check passes, 1 when one fails, 2 on a usage or tool error.
 
 The effective truth (what synth measured), from lib/turnfit/synth/synth.cpp, apply_drift(): the
@@ -195,9 +199,22 @@ def check_numbering(peaks, truth_turns):
     return wrong, missing, max(abs(e) for e in errs) if errs else float("nan"), rms
 
 
-def track_turns(tools, dvars_path):
-    p = run([tools["track"], MACHINE, "--dvars", dvars_path, "-q", "--no-provenance", "-o", "-"], "turnfit-track")
+def track_turns(tools, dvars_path, centroid=False):
+    """turnfit-track's turns of the machine with these dvars: the reference particle's, or with
+    centroid the bunch's centre as a turn-pattern problem predicts it (turnfit-track --centroid)."""
+    p = run([tools["track"], MACHINE, "--dvars", dvars_path, "-q", "--no-provenance", "-o", "-"] +
+            (["--centroid"] if centroid else []), "turnfit-track")
     return turns_of(read_csv(p.stdout, is_text=True))
+
+
+def true_centres(tdoc, peaks):
+    """truth.json's bunch centres at the measured (probe, turn) (the numbering is checked separately)."""
+    t = {(probe, x["turn"]): x["r_mm"] for probe, true in tdoc["turns"].items() for x in true}
+    return {k: t[k] for k in peaks if k in t}
+
+
+def design_of(report):
+    return {v["name"]: v["value"] for v in report["variables"]}
 
 
 def one_truth(label, rng, variables, args, tools, work, control):
@@ -247,9 +264,12 @@ def one_truth(label, rng, variables, args, tools, work, control):
     if missing:  # a note: a missed turn is one residual less, not a wrong one
         row["notes"].append("peakfind missed %d true turn(s): %s" % (len(missing), missing[:8]))
 
-    # The truth with and without the drift, tracked as the fit tracks (one particle), against the peaks.
-    row["truth_nodrift"] = norms(track_turns(tools, truth_path), peaks)[:2]
-    row["truth_drift"] = norms(track_turns(tools, eff_path), peaks)[:2]
+    # The truth with and without the drift, the bunch's centre as the fit predicts it, against the
+    # peaks: with the drift, the floor a perfect fit reaches (the peaks' own errors and the model's).
+    row["truth_nodrift"] = norms(track_turns(tools, truth_path, True), peaks)[:2]
+    row["truth_drift"] = norms(track_turns(tools, eff_path, True), peaks)[:2]
+    centres = true_centres(tdoc, peaks)
+    row["truth_drift_vs_centres"] = norms(track_turns(tools, eff_path, True), centres)[:2]
 
     prob = os.path.join(d, "problem.json")
     write_json(prob, {"format": "turnfit-problem/1", "machine": MACHINE, "peaks": [rri2, rrl], "variables": "paper"})
@@ -275,14 +295,32 @@ def one_truth(label, rng, variables, args, tools, work, control):
     row["sigma_mm"] = r["sigma_mm"]
     row["matched"] = (r["after"]["matched"], len(peaks))
 
+    # The fitted machines' bunch centres against the true ones: how well the fit recovered the
+    # machine, whatever the peaks' errors.
+    ls_path = os.path.join(d, "ls-dvars.json")
+    write_json(ls_path, design_of(r))
+    row["ls_vs_centres"] = norms(track_turns(tools, ls_path, True), centres)[:2]
+    row["polish_vs_centres"] = norms(track_turns(tools, best, True), centres)[:2]
+
     checks = []
-    for name, v in (("worst", row["after"][0]), ("RMS", row["after"][1])):
-        lim = args.max_worst if name == "worst" else args.max_rms
-        if not v <= lim:
-            row["failures"].append("least squares: %s turn %.4f mm > %.3f mm" % (name, v, lim) if name == "worst"
-                                   else "least squares: RMS %.4f mm > %.3f mm" % (v, lim))
-    if not row["minimax"][0] <= args.max_worst:
-        row["failures"].append("minimax polish: worst turn %.4f mm > %.3f mm" % (row["minimax"][0], args.max_worst))
+    # Against the true centres: the issue's figures. Against the peaks: those figures, or the floor
+    # the effective truth itself reaches there (a merged pair peakfind splits 0.4 mm wrong is as
+    # wrong for a perfect fit), with 10 % to spare.
+    worst_lim = max(args.max_worst, 1.1 * row["truth_drift"][0])
+    rms_lim = max(args.max_rms, 1.1 * row["truth_drift"][1])
+    for what, (w, rms) in (("least squares against the true centres", row["ls_vs_centres"]),
+                           ("least squares against the peaks", row["after"])):
+        wl, rl = (args.max_worst, args.max_rms) if "centres" in what else (worst_lim, rms_lim)
+        if not w <= wl:
+            row["failures"].append("%s: worst turn %.4f mm > %.3f mm" % (what, w, wl))
+        if not rms <= rl:
+            row["failures"].append("%s: RMS %.4f mm > %.4f mm" % (what, rms, rl))
+    if not row["polish_vs_centres"][0] <= args.max_worst:
+        row["failures"].append("minimax polish against the true centres: worst turn %.4f mm > %.3f mm" % (
+            row["polish_vs_centres"][0], args.max_worst))
+    if not row["minimax"][0] <= worst_lim:
+        row["failures"].append("minimax polish against the peaks: worst turn %.4f mm > %.3f mm" % (
+            row["minimax"][0], worst_lim))
     if not row["minimax"][0] <= row["after"][0] + 1e-9:
         row["failures"].append("minimax polish: worst turn %.4f mm above least squares' %.4f mm" % (
             row["minimax"][0], row["after"][0]))
@@ -442,7 +480,7 @@ def print_row(row, out):
 
 
 HEADER = ("| truth | synth seed | worst / RMS before [mm] | least squares: worst / RMS [mm] | "
-          "minimax polish: worst / RMS [mm] | truth + drift vs peaks: worst / RMS [mm] | "
+          "minimax polish: worst / RMS [mm] | truth + drift (centre) vs peaks: worst / RMS [mm] | "
           "evaluations = LS + polish | wall / CPU [s] | determined within 2 sigma | peaks (numbering) | checks |\n"
           "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
 
@@ -514,10 +552,13 @@ def main(argv):
             sys.stdout.flush()
         for row in rows:
             print("# %s: synth %d particles (%d lost), %.0f s; drift dr %+.3f mm, dpr %+.3f mrad, dV/V %+.2e; "
-                  "truth without drift vs peaks %s mm; peaks vs truth.json centroids max %.3f, RMS %.4f mm; "
+                  "truth without drift vs peaks %s mm; truth + drift vs the true centres %s mm; fit vs the true "
+                  "centres: least squares %s, polish %s mm; peaks vs truth.json centroids max %.3f, RMS %.4f mm; "
                   "chi2/dof %.2f, sigma %s, %s; localsearch's own wall/CPU %.0f/%.0f s" % (
                       row["label"], row["particles"], row["lost"], row["synth_wall_s"], row["drift"]["dr_mm"],
                       row["drift"]["dpr_mrad"], row["drift"]["dvoltage_rel"], fmt_pair(row["truth_nodrift"]),
+                      fmt_pair(row["truth_drift_vs_centres"]), fmt_pair(row["ls_vs_centres"]),
+                      fmt_pair(row["polish_vs_centres"]),
                       row["peak_err_max_mm"], row["peak_err_rms_mm"], row["chi2_dof"],
                       {k: round(v, 4) for k, v in row["sigma_mm"].get("per_probe", {}).items()} or row["sigma_mm"],
                       row["termination"], row["report_wall_s"], row["report_cpu_s"]))

@@ -1,6 +1,7 @@
 // A fit weighs each measured turn by its peak's own uncertainty (issue 15): a peak that
 // turnfit-peakfind marks as doubtful (a large r_err_mm, e.g. one of a merged pair) cannot pull
-// the fit away from the turns it is sure of.
+// the fit away from the turns it is sure of; nor can one it failed to mark, which the fit's
+// outlier rule (Huber, 3 sigma) finds and names.
 #include <catch2/catch.hpp>
 
 #include <cmath>
@@ -73,9 +74,23 @@ TEST_CASE("local search: peaks weighted by their own uncertainty, doubtful ones 
   CHECK(good.sigma_mm[1] < 0.002);  // RRL: no scatter beyond r_err_mm (measured 0: the jitter is within it)
   CHECK(good.chi2_dof < 2);
 
-  // The same peaks claiming to be as good as the rest: the fit leans toward them, its RRL
-  // scatter grows to absorb them, and rinit lands further from the truth.
+  CHECK(good.outliers.empty());  // within their own uncertainty: nothing to down-weight
+
+  // The same peaks claiming to be as good as the rest, without the outlier rule (--huber 0):
+  // the fit leans toward them, its RRL scatter grows to absorb them, and rinit lands further
+  // from the truth.
+  s.huber_k = 0;
   const LocalSearchResult blind = fit(0.002);
   CHECK(blind.sigma_mm[1] > 0.03);  // three 0.4 mm errors among 174 turns: 0.052 mm rms
   CHECK(std::fabs(blind.variables[0].value - xt[0]) > std::fabs(good.variables[0].value - xt[0]));
+  CHECK(blind.outliers.empty());
+
+  // With it (the default, 3 sigma), the fit finds them itself: exactly those three turns are
+  // named and down-weighted, and rinit comes back within 3 sigma.
+  s.huber_k = 3;
+  const LocalSearchResult robust = fit(0.002);
+  REQUIRE(robust.outliers.size() == 3);
+  for (size_t k = 0; k < 3; ++k) CHECK(robust.outliers[k].residual_mm == Approx(-0.4).margin(0.02));
+  CHECK(robust.sigma_mm[1] < 0.002);
+  CHECK(std::fabs(robust.variables[0].value - xt[0]) < 3 * robust.variables[0].sigma);
 }

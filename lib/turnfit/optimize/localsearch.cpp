@@ -347,19 +347,26 @@ ceres::Solver::Summary lm_pass(const Residuals& res, std::vector<double>& theta,
 /// weighted by inv_sigma, priors after the data) and cur (its simulation) are the
 /// least-squares result's.
 void minimax_polish(const TurnPatternProblem& p, const Residuals& res, std::vector<double> u, Eigen::MatrixXd J,
-                    TurnPatternResult cur, const std::vector<double>& sigma, const LocalSearchSettings& s,
-                    LocalSearchResult& out) {
+                    TurnPatternResult cur, const std::vector<double>& sigma, const std::vector<unsigned char>& outlier,
+                    const LocalSearchSettings& s, LocalSearchResult& out) {
   const size_t n = res.n, nmeas = res.nmeas;
-  const FitSummary& ls = out.after;
+  // The turns down-weighted as outliers take no part in the polish (it would chase a bad peak):
+  // its decisions see them as unmatched; its summary counts them again.
+  auto masked = [&](TurnPatternResult r) {
+    for (size_t i = 0; i < nmeas && i < r.matched.size(); ++i)
+      if (outlier[i]) r.matched[i] = 0;
+    return r;
+  };
+  const FitSummary ls = summarize(masked(cur), sigma);
   FitSummary best = ls;
   out.x_minimax = out.x;
-  out.minimax = ls;
+  out.minimax = out.after;
   out.minimax_termination = "no step lowered the worst turn";
   while (out.minimax_steps < s.minimax_steps) {
     // The matched data rows, in mm per unit of scaled variable.
     std::vector<Eigen::Index> rows;
     for (size_t i = 0; i < nmeas; ++i)
-      if (cur.matched[i]) rows.push_back(static_cast<Eigen::Index>(i));
+      if (cur.matched[i] && !outlier[i]) rows.push_back(static_cast<Eigen::Index>(i));
     Eigen::MatrixXd Jm(static_cast<Eigen::Index>(rows.size()), static_cast<Eigen::Index>(n));
     Eigen::VectorXd r(static_cast<Eigen::Index>(rows.size()));
     for (size_t k = 0; k < rows.size(); ++k) {
@@ -380,10 +387,11 @@ void minimax_polish(const TurnPatternProblem& p, const Residuals& res, std::vect
       x = res.x_of(v.data());
       tr = p.simulate(x);
       ++out.minimax_evaluations;
-      f = summarize(tr, sigma);
+      f = summarize(masked(tr), sigma);
       ok = f.ok && f.violation <= ls.violation && f.matched >= ls.matched && f.linf_mm < best.linf_mm - 1e-6;
       if (ok) {
-        const CoordinateNorms now = coordinate_norms(cur, p.measured()), trial = coordinate_norms(tr, p.measured());
+        const CoordinateNorms now = coordinate_norms(masked(cur), p.measured()),
+                              trial = coordinate_norms(masked(tr), p.measured());
         ok = coordinate_accepts(now, trial, s.minimax_tolerance_mm, 1e-6);
       }
     }
@@ -396,7 +404,7 @@ void minimax_polish(const TurnPatternProblem& p, const Residuals& res, std::vect
     cur = tr;
     best = f;
     out.x_minimax = x;
-    out.minimax = f;
+    out.minimax = summarize(tr, sigma);
     ++out.minimax_steps;
     out.minimax_termination = "step limit";
     if (out.minimax_steps == s.minimax_steps) break;
@@ -587,10 +595,11 @@ LocalSearchResult local_search(TurnPatternProblem& p, const std::vector<double>&
   const bool estimate = sigma.empty();
   std::vector<double> peak_e2(nmeas, 0);  // peakfind's uncertainty squared
   std::vector<double> scatter;            // per probe
+  std::vector<double> outlier_factor(nmeas, 1);  // Huber's down-weighting: sigma times this
   auto sigma_from_scatter = [&] {
     for (size_t q = 0; q < meas.probes.size(); ++q) {
       auto [b, e] = meas.probe_range(static_cast<int>(q));
-      for (size_t i = b; i < e; ++i) sigma[i] = std::sqrt(scatter[q] * scatter[q] + peak_e2[i]);
+      for (size_t i = b; i < e; ++i) sigma[i] = outlier_factor[i] * std::sqrt(scatter[q] * scatter[q] + peak_e2[i]);
     }
   };
   if (estimate) {
@@ -686,33 +695,54 @@ LocalSearchResult local_search(TurnPatternProblem& p, const std::vector<double>&
     const bool shift_moved = shift_change > 0.1 * *std::min_element(sigma.begin(), sigma.end());
     bool moved = false;
     std::vector<double> est;
+    std::vector<double> factor(nmeas, 1);
     if (estimate) {
       const TurnPatternResult r1 = simulate(res.x_of(u.data()));
       size_t nmatched = 0;
       for (size_t i = 0; i < nmeas; ++i) nmatched += r1.ok && r1.matched[i];
       for (size_t q = 0; q < meas.probes.size(); ++q) {
         auto [b, e] = meas.probe_range(static_cast<int>(q));
-        std::vector<double> r2, e2;
-        for (size_t i = b; i < e; ++i)
-          if (r1.ok && r1.matched[i]) {
-            r2.push_back(r1.delta_mm[i] * r1.delta_mm[i]);
-            e2.push_back(peak_e2[i]);
+        // The scatter from the turns within huber_k of their sigma (all at first), then the
+        // outliers by that scatter, until the set stops changing.
+        std::vector<unsigned char> out_of(e - b, 0);
+        double sp = scatter[q];
+        for (int round = 0; round < 10; ++round) {
+          std::vector<double> r2, e2;
+          for (size_t i = b; i < e; ++i)
+            if (r1.ok && r1.matched[i] && !out_of[i - b]) {
+              r2.push_back(r1.delta_mm[i] * r1.delta_mm[i]);
+              e2.push_back(peak_e2[i]);
+            }
+          const double np = static_cast<double>(r2.size());
+          const double dof = np - static_cast<double>(n) * np / static_cast<double>(std::max<size_t>(nmatched, 1));
+          sp = np > 0 && dof > 0.5 ? scatter_beyond(r2, e2, dof) : scatter[q];
+          if (!(s.huber_k > 0)) break;
+          bool changed = false;
+          for (size_t i = b; i < e; ++i) {
+            const bool o = r1.ok && r1.matched[i] &&
+                           std::fabs(r1.delta_mm[i]) > s.huber_k * std::sqrt(sp * sp + peak_e2[i]);
+            changed = changed || o != static_cast<bool>(out_of[i - b]);
+            out_of[i - b] = o;
           }
-        const double np = static_cast<double>(r2.size());
-        const double dof = np - static_cast<double>(n) * np / static_cast<double>(std::max<size_t>(nmatched, 1));
-        est.push_back(np > 0 && dof > 0.5 ? scatter_beyond(r2, e2, dof) : scatter[q]);
+          if (!changed) break;
+        }
+        est.push_back(sp);
+        for (size_t i = b; i < e; ++i)
+          if (out_of[i - b])
+            factor[i] = std::sqrt(std::fabs(r1.delta_mm[i]) / (s.huber_k * std::sqrt(sp * sp + peak_e2[i])));
       }
       // Moved: a turn's sigma changes by more than 10 %.
       for (size_t q = 0; q < meas.probes.size(); ++q) {
         auto [b, e] = meas.probe_range(static_cast<int>(q));
         for (size_t i = b; i < e && !moved; ++i)
-          moved = std::fabs(std::sqrt(est[q] * est[q] + peak_e2[i]) - sigma[i]) > 0.1 * sigma[i];
+          moved = std::fabs(factor[i] * std::sqrt(est[q] * est[q] + peak_e2[i]) - sigma[i]) > 0.1 * sigma[i];
       }
     }
     // The last pass's weights are within 10 % of these and its shift within a tenth of sigma: keep them.
     if (!shift_moved && (!estimate || (pass > 2 && !moved))) break;
     if (estimate) {
       scatter = est;
+      outlier_factor = factor;
       sigma_from_scatter();
       out.sigma_mm = est;
     }
@@ -756,6 +786,10 @@ LocalSearchResult local_search(TurnPatternProblem& p, const std::vector<double>&
   out.x = res.x_of(u.data());
   const TurnPatternResult fin = simulate(out.x);
   out.after = summarize(fin, sigma);
+  for (size_t i = 0; i < nmeas; ++i)
+    if (outlier_factor[i] > 1)
+      out.outliers.push_back({i, fin.ok && fin.matched[i] ? fin.delta_mm[i] : std::nan(""), sigma[i] / outlier_factor[i],
+                              sigma[i]});
   out.before = summarize(start, sigma);  // chi2 with the final sigma, comparable with after's
   const double dof = static_cast<double>(out.after.matched) - static_cast<double>(n);
   out.chi2_dof = dof > 0 ? out.after.chi2 / dof : std::nan("");
@@ -810,7 +844,9 @@ LocalSearchResult local_search(TurnPatternProblem& p, const std::vector<double>&
   out.identifiability = describe_identifiability(names, Jd, out.correlation);
 
   const size_t fit_evaluations = res.evaluations;
-  if (s.minimax) minimax_polish(p, res, u, J, fin, sigma, s, out);  // counts its trial designs
+  std::vector<unsigned char> outlier(nmeas, 0);
+  for (const auto& o : out.outliers) outlier[o.point] = 1;
+  if (s.minimax) minimax_polish(p, res, u, J, fin, sigma, outlier, s, out);  // counts its trial designs
   const size_t polish_jacobians = res.evaluations - fit_evaluations;
   out.evaluations = res.evaluations + own_evaluations + out.minimax_evaluations + out.centroid_tracks;
   out.centroid_rms_mm = p.current_centroid_shift().rms_mm;

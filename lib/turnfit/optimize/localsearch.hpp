@@ -29,6 +29,12 @@ struct LocalSearchSettings {
   /// data do not determine then stay put instead of drifting to a bound; a determined
   /// direction's residuals outweigh it. 0: none.
   double weak_prior_range = 0.1;
+  /// Outlying turns, when sigma is estimated: a turn whose converged residual lies beyond
+  /// huber_k of its sigma is down-weighted as Huber's loss does (its sigma times
+  /// sqrt(|z| / huber_k), z the residual in sigmas) and left out of the scatter's estimate, so
+  /// one bad peak (a turn peakfind merged with a neighbour it did not see) can neither pull the
+  /// fit nor inflate every turn's sigma; the report names each. 0: none.
+  double huber_k = 3;
   /// The residual [mm] given to a measured turn the design does not reach (or reaches under
   /// another number): finite, so a failed design steers the fit away instead of stopping it.
   /// 0: 10 mm or twice the start's worst turn, whichever is larger.
@@ -96,6 +102,13 @@ struct LocalSearchResult {
   /// scatter that adds in quadrature to each peak's own uncertainty (the peaks' r_err_mm).
   std::vector<double> sigma_mm;
   size_t peak_uncertainties = 0;             ///< measured turns whose peaks carry their own uncertainty
+  /// Turns down-weighted as outliers (settings.huber_k) in the last pass: measured-point index,
+  /// residual [mm], sigma before down-weighting [mm] and after.
+  struct Outlier {
+    size_t point = 0;
+    double residual_mm = 0, sigma_mm = 0, weighted_sigma_mm = 0;
+  };
+  std::vector<Outlier> outliers;
   std::string sigma_source;                  ///< "problem file" or how it was estimated
   int sigma_passes = 1;                      ///< fit passes (each estimate of sigma, or of the centroid shift, adds one)
   /// The bunch's centroid shift (TurnPatternProblem, "centroid" mode): recomputed at the start

@@ -53,6 +53,10 @@ void add_localsearch_options(CLI::App& app, LocalSearchOptions& o) {
   app.add_option("--minimax-tolerance", o.settings.minimax_tolerance_mm,
                  "How far [mm] a polish step may raise the 2nd or 3rd largest error or the weighted l2 (default 0.01)")
       ->check(CLI::Range(0.0, 1e6));
+  app.add_option("--huber", o.settings.huber_k,
+                 "With sigma estimated: down-weight a turn whose residual lies beyond K of its sigma, as Huber's "
+                 "loss does, and name it in the report (default 3; 0: none)")
+      ->check(CLI::Range(0.0, 1e6));
   app.add_option("--weak-prior", o.settings.weak_prior_range,
                  "Width of the weak prior toward the start, in bound ranges (default 0.1; 0: none)")
       ->check(CLI::Range(0.0, 1e6));
@@ -229,6 +233,16 @@ nlohmann::json localsearch_report(const TurnPatternProblem& p, const LocalSearch
                    {"per_probe", sg},
                    {"peak_uncertainties", r.peak_uncertainties},
                    {"passes", r.sigma_passes}};
+  nlohmann::json outl = nlohmann::json::array();
+  for (const auto& o : r.outliers) {
+    const TurnPoint& pt = p.measured().points[o.point];
+    outl.push_back({{"probe", p.measured().probes[static_cast<size_t>(pt.probe)]},
+                    {"turn", pt.turn},
+                    {"residual_mm", jnum(o.residual_mm)},
+                    {"sigma_mm", jnum(o.sigma_mm)},
+                    {"weighted_sigma_mm", jnum(o.weighted_sigma_mm)}});
+  }
+  j["outliers"] = outl;
   if (!p.bunch_nodes().empty()) {
     j["bunch"]["updates"] = r.centroid_updates;
     j["bunch"]["last_change_mm"] = jnum(r.centroid_change_mm);
@@ -445,6 +459,13 @@ int run_localsearch(const LocalSearchOptions& o) {
     }
     for (const auto& v : r.variables)
       if (v.at_bound) cli::warn(o.common, v.name + " ended on a bound (" + cli::fmt(v.value) + ")");
+    for (const auto& out : r.outliers) {
+      const TurnPoint& pt = p->measured().points[out.point];
+      cli::warn(o.common, p->measured().probes[static_cast<size_t>(pt.probe)] + " turn " + std::to_string(pt.turn) +
+                              ": residual " + cli::fmt(out.residual_mm, 3) + " mm, " +
+                              cli::fmt(std::fabs(out.residual_mm) / out.sigma_mm, 2) +
+                              " sigma: down-weighted as an outlier (--huber; check its peak)");
+    }
     if (r.failed_evaluations)
       cli::warn(o.common, std::to_string(r.failed_evaluations) + " evaluations could not be simulated (penalized)");
   }
