@@ -10,6 +10,7 @@
 #include <atomic>
 #include <chrono>
 #include <cmath>
+#include <limits>
 #include <ctime>
 #include <mutex>
 
@@ -439,6 +440,45 @@ double scatter_beyond(const std::vector<double>& r2, const std::vector<double>& 
   return std::sqrt(0.5 * (lo + hi));
 }
 
+/// The scatter s and the trust c in the peaks' own uncertainties e_i (sigma_i^2 = s^2 +
+/// c^2 e_i^2) that the residuals favour: for each c of a grid (0, and 2^(k/2) from 1/64 to 4),
+/// s from scatter_beyond so that chi2 = dof; of those that reach it, the one of largest Gaussian
+/// likelihood, i.e. the smallest sum of log sigma_i^2 (chi2 being the same). A c at which the
+/// peaks' uncertainties alone leave chi2 below dof is too large and not taken. Without peak
+/// uncertainties: c = 0 and s as scatter_beyond gives it.
+void estimate_scatter(const std::vector<double>& r2, const std::vector<double>& e2, double dof, double& s, double& c) {
+  bool any = false;
+  for (double e : e2) any = any || e > 0;
+  if (!any) {
+    s = scatter_beyond(r2, e2, dof);
+    c = 0;
+    return;
+  }
+  double best = std::numeric_limits<double>::infinity();
+  std::vector<double> ce2(e2.size());
+  for (int k = -13; k <= 4; ++k) {
+    const double ck = k < -12 ? 0 : std::pow(2.0, 0.5 * k);
+    for (size_t i = 0; i < e2.size(); ++i) ce2[i] = ck * ck * e2[i];
+    const double sk = scatter_beyond(r2, ce2, dof);
+    double chi2 = 0, logdet = 0;
+    for (size_t i = 0; i < r2.size(); ++i) {
+      const double v = sk * sk + ce2[i];
+      if (!(v > 0)) {
+        logdet = std::numeric_limits<double>::infinity();
+        break;
+      }
+      chi2 += r2[i] / v;
+      logdet += std::log(v);
+    }
+    if (chi2 < 0.99 * dof) continue;  // the peaks' uncertainties alone over-explain the residuals
+    if (logdet < best) {
+      best = logdet;
+      s = sk;
+      c = ck;
+    }
+  }
+}
+
 std::string fmt(double v, int digits = 3) {
   char b[48];
   std::snprintf(b, sizeof b, "%.*g", digits, v);
@@ -588,18 +628,21 @@ LocalSearchResult local_search(TurnPatternProblem& p, const std::vector<double>&
   const TurnTable& meas = p.measured();
   const size_t nmeas = meas.points.size();
 
-  // Peak-position uncertainty: the problem's; else each peak's own (peakfind's r_err_mm, 0 when
-  // the peaks have none) and a per-turn scatter per probe added in quadrature, the scatter first
-  // the wire step / sqrt(12), then estimated from the converged residuals.
+  // Peak-position uncertainty: the problem's; else a per-turn scatter s_p and each peak's own
+  // uncertainty e_i (peakfind's r_err_mm, 0 when the peaks have none) times a trust c_p per
+  // probe, in quadrature: first the wire step / sqrt(12) and c_p = 0, then both estimated from
+  // the converged residuals.
   std::vector<double> sigma = p.sigma_mm();
   const bool estimate = sigma.empty();
   std::vector<double> peak_e2(nmeas, 0);  // peakfind's uncertainty squared
   std::vector<double> scatter;            // per probe
+  std::vector<double> trust;              // per probe: c_p
   std::vector<double> outlier_factor(nmeas, 1);  // Huber's down-weighting: sigma times this
   auto sigma_from_scatter = [&] {
     for (size_t q = 0; q < meas.probes.size(); ++q) {
       auto [b, e] = meas.probe_range(static_cast<int>(q));
-      for (size_t i = b; i < e; ++i) sigma[i] = outlier_factor[i] * std::sqrt(scatter[q] * scatter[q] + peak_e2[i]);
+      for (size_t i = b; i < e; ++i)
+        sigma[i] = outlier_factor[i] * std::sqrt(scatter[q] * scatter[q] + trust[q] * trust[q] * peak_e2[i]);
     }
   };
   if (estimate) {
@@ -616,6 +659,7 @@ LocalSearchResult local_search(TurnPatternProblem& p, const std::vector<double>&
       for (const auto& pr : p.machine().probes)
         if (pr.name == meas.probes[q]) step = pr.step_mm;
       scatter.push_back((step > 0 ? step : 0.5) / std::sqrt(12.0));
+      trust.push_back(0);
     }
     sigma_from_scatter();
   }
@@ -695,17 +739,17 @@ LocalSearchResult local_search(TurnPatternProblem& p, const std::vector<double>&
     const bool shift_moved = shift_change > 0.1 * *std::min_element(sigma.begin(), sigma.end());
     bool moved = false;
     std::vector<double> est;
-    std::vector<double> factor(nmeas, 1);
+    std::vector<double> factor(nmeas, 1), est_trust;
     if (estimate) {
       const TurnPatternResult r1 = simulate(res.x_of(u.data()));
       size_t nmatched = 0;
       for (size_t i = 0; i < nmeas; ++i) nmatched += r1.ok && r1.matched[i];
       for (size_t q = 0; q < meas.probes.size(); ++q) {
         auto [b, e] = meas.probe_range(static_cast<int>(q));
-        // The scatter from the turns within huber_k of their sigma (all at first), then the
-        // outliers by that scatter, until the set stops changing.
+        // The scatter and the trust in the peaks' own uncertainties from the turns within huber_k
+        // of their sigma (all at first), then the outliers by those, until the set stops changing.
         std::vector<unsigned char> out_of(e - b, 0);
-        double sp = scatter[q];
+        double sp = scatter[q], cp = trust[q];
         for (int round = 0; round < 10; ++round) {
           std::vector<double> r2, e2;
           for (size_t i = b; i < e; ++i)
@@ -715,33 +759,37 @@ LocalSearchResult local_search(TurnPatternProblem& p, const std::vector<double>&
             }
           const double np = static_cast<double>(r2.size());
           const double dof = np - static_cast<double>(n) * np / static_cast<double>(std::max<size_t>(nmatched, 1));
-          sp = np > 0 && dof > 0.5 ? scatter_beyond(r2, e2, dof) : scatter[q];
+          if (np > 0 && dof > 0.5) estimate_scatter(r2, e2, dof, sp, cp);
           if (!(s.huber_k > 0)) break;
           bool changed = false;
           for (size_t i = b; i < e; ++i) {
             const bool o = r1.ok && r1.matched[i] &&
-                           std::fabs(r1.delta_mm[i]) > s.huber_k * std::sqrt(sp * sp + peak_e2[i]);
+                           std::fabs(r1.delta_mm[i]) > s.huber_k * std::sqrt(sp * sp + cp * cp * peak_e2[i]);
             changed = changed || o != static_cast<bool>(out_of[i - b]);
             out_of[i - b] = o;
           }
           if (!changed) break;
         }
         est.push_back(sp);
+        est_trust.push_back(cp);
         for (size_t i = b; i < e; ++i)
           if (out_of[i - b])
-            factor[i] = std::sqrt(std::fabs(r1.delta_mm[i]) / (s.huber_k * std::sqrt(sp * sp + peak_e2[i])));
+            factor[i] = std::sqrt(std::fabs(r1.delta_mm[i]) / (s.huber_k * std::sqrt(sp * sp + cp * cp * peak_e2[i])));
       }
       // Moved: a turn's sigma changes by more than 10 %.
       for (size_t q = 0; q < meas.probes.size(); ++q) {
         auto [b, e] = meas.probe_range(static_cast<int>(q));
         for (size_t i = b; i < e && !moved; ++i)
-          moved = std::fabs(factor[i] * std::sqrt(est[q] * est[q] + peak_e2[i]) - sigma[i]) > 0.1 * sigma[i];
+          moved = std::fabs(factor[i] * std::sqrt(est[q] * est[q] + est_trust[q] * est_trust[q] * peak_e2[i]) - sigma[i]) >
+                  0.1 * sigma[i];
       }
     }
     // The last pass's weights are within 10 % of these and its shift within a tenth of sigma: keep them.
     if (!shift_moved && (!estimate || (pass > 2 && !moved))) break;
     if (estimate) {
       scatter = est;
+      trust = est_trust;
+      out.peak_trust = trust;
       outlier_factor = factor;
       sigma_from_scatter();
       out.sigma_mm = est;
@@ -770,10 +818,10 @@ LocalSearchResult local_search(TurnPatternProblem& p, const std::vector<double>&
   }
   if (estimate) {
     out.sigma_source = out.peak_uncertainties
-                           ? "each peak's own uncertainty (the peaks' r_err_mm) and a per-turn scatter per probe in "
-                             "quadrature; the scatter estimated from the converged residuals (chi2 per degree of "
-                             "freedom 1), re-estimated until sigma moves by less than 10 %; first pass: the wire "
-                             "step / sqrt(12)"
+                           ? "a per-turn scatter per probe and each peak's own uncertainty (the peaks' r_err_mm) "
+                             "times a trust per probe, in quadrature, both estimated from the converged residuals "
+                             "(chi2 per degree of freedom 1, the trust of largest likelihood), re-estimated until "
+                             "sigma moves by less than 10 %; first pass: the wire step / sqrt(12)"
                            : "estimated per probe from the converged residuals (chi2 per degree of freedom 1), "
                              "re-estimated until it moves by less than 10 %; first pass weighted by each probe's wire "
                              "step / sqrt(12)";

@@ -102,6 +102,9 @@ struct LocalSearchResult {
   /// scatter that adds in quadrature to each peak's own uncertainty (the peaks' r_err_mm).
   std::vector<double> sigma_mm;
   size_t peak_uncertainties = 0;             ///< measured turns whose peaks carry their own uncertainty
+  /// Per probe: the trust c_p in the peaks' own uncertainties, sigma_i^2 = s_p^2 + c_p^2 e_i^2
+  /// (estimated with the scatter; 0 without peak uncertainties or with the problem's sigma_mm).
+  std::vector<double> peak_trust;
   /// Turns down-weighted as outliers (settings.huber_k) in the last pass: measured-point index,
   /// residual [mm], sigma before down-weighting [mm] and after.
   struct Outlier {

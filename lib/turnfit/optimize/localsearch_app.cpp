@@ -228,10 +228,15 @@ nlohmann::json localsearch_report(const TurnPatternProblem& p, const LocalSearch
                                   bool provenance, double tolerance_mm) {
   nlohmann::json j = report_head(p, "lm", start, provenance);
   nlohmann::json sg = nlohmann::json::object();
-  for (size_t q = 0; q < r.sigma_probes.size(); ++q) sg[r.sigma_probes[q]] = jnum(r.sigma_mm[q]);
+  nlohmann::json trust = nlohmann::json::object();
+  for (size_t q = 0; q < r.sigma_probes.size(); ++q) {
+    sg[r.sigma_probes[q]] = jnum(r.sigma_mm[q]);
+    trust[r.sigma_probes[q]] = jnum(q < r.peak_trust.size() ? r.peak_trust[q] : 0.0);
+  }
   j["sigma_mm"] = {{"source", r.sigma_source},
                    {"per_probe", sg},
                    {"peak_uncertainties", r.peak_uncertainties},
+                   {"peak_trust", trust},
                    {"passes", r.sigma_passes}};
   nlohmann::json outl = nlohmann::json::array();
   for (const auto& o : r.outliers) {
