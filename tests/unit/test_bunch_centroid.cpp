@@ -19,6 +19,12 @@ using turnfit::test::turns_as_peaks;
 
 namespace {
 
+/// ring8's map and cavity profiles beside a machine file written into tmp.
+void copy_ring8_files(const TempDir& tmp) {
+  for (const char* f : {"field.map", "main-cavity.dat", "flattop-cavity.dat"})
+    tmp.file(f, std::string(std::istreambuf_iterator<char>(std::ifstream(ring8(f)).rdbuf()), {}));
+}
+
 double sum_w(const std::vector<QuadratureNode>& q, double (*f)(const BunchOffset&)) {
   double s = 0;
   for (const auto& n : q) s += n.weight * f(n.offset);
@@ -90,8 +96,7 @@ TEST_CASE("centroid shift: ring8's phase spread, against a 41-point quadrature o
   TempDir tmp;
   nlohmann::json mj = nlohmann::json::parse(std::ifstream(ring8("machine.json")));
   mj["bunch"] = {{"sigma_phase_deg", 2.0}, {"cutoff_sigma", 3.0}};
-  for (const char* f : {"field.map", "main-cavity.dat", "flattop-cavity.dat"})
-    tmp.file(f, std::string(std::istreambuf_iterator<char>(std::ifstream(ring8(f)).rdbuf()), {}));
+  copy_ring8_files(tmp);
   const std::string machine = tmp.file("machine.json", mj.dump());
   const Machine m = load_machine(machine);
   const std::string peaks = turns_as_peaks(m, tmp, "peaks.csv");
@@ -183,8 +188,7 @@ TEST_CASE("turn-pattern problem: the \"bunch\" key", "[bunch][turn-problem]") {
   CHECK(msg.find("bunch") != std::string::npos);
   nlohmann::json mj = nlohmann::json::parse(std::ifstream(ring8("machine.json")));
   mj.erase("bunch");
-  for (const char* f : {"field.map", "main-cavity.dat", "flattop-cavity.dat"})
-    tmp.file(f, std::string(std::istreambuf_iterator<char>(std::ifstream(ring8(f)).rdbuf()), {}));
+  copy_ring8_files(tmp);
   tmp.file("nobunch.json", mj.dump());
   const std::string nb = "{\"format\": \"turnfit-problem/1\", \"machine\": \"nobunch.json\", \"peaks\": \"" + peaks +
                          "\", \"variables\": [\"rinit\"]";
