@@ -352,13 +352,16 @@ void minimax_polish(const TurnPatternProblem& p, const Residuals& res, std::vect
                     const LocalSearchSettings& s, LocalSearchResult& out) {
   const size_t n = res.n, nmeas = res.nmeas;
   // The turns down-weighted as outliers take no part in the polish (it would chase a bad peak):
-  // its decisions see them as unmatched; its summary counts them again.
+  // its decisions see them as unmatched, its summary counts them again; an outlier may not grow
+  // beyond the larger of its least-squares |residual| and the polished worst turn, so the worst
+  // turn over all turns never rises.
   auto masked = [&](TurnPatternResult r) {
     for (size_t i = 0; i < nmeas && i < r.matched.size(); ++i)
       if (outlier[i]) r.matched[i] = 0;
     return r;
   };
   const FitSummary ls = summarize(masked(cur), sigma);
+  const TurnPatternResult at_ls = cur;
   FitSummary best = ls;
   out.x_minimax = out.x;
   out.minimax = out.after;
@@ -395,6 +398,9 @@ void minimax_polish(const TurnPatternProblem& p, const Residuals& res, std::vect
                               trial = coordinate_norms(masked(tr), p.measured());
         ok = coordinate_accepts(now, trial, s.minimax_tolerance_mm, 1e-6);
       }
+      for (size_t i = 0; i < nmeas && ok; ++i)
+        if (outlier[i] && at_ls.matched[i])
+          ok = tr.matched[i] && std::fabs(tr.delta_mm[i]) <= std::max(std::fabs(at_ls.delta_mm[i]), f.linf_mm) + 1e-9;
     }
     if (!ok) {
       out.minimax_termination = out.minimax_steps ? "converged (no step along the minimax direction passes the rule)"
