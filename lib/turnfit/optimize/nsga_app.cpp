@@ -391,6 +391,21 @@ int run_nsga(const NsgaOptions& o) {
 
   size_t failed = 0;
   for (const auto& ind : result.population) failed += !ind.ok;
+  // Not one design could be evaluated: the problem (a machine that loses the particle wherever
+  // the bounds allow, an evaluator that always fails) is at fault, not the search. The log keeps
+  // every attempt and its reason; no front is written.
+  if (!result.population.empty() && failed == result.population.size()) {
+    std::string why;
+    for (const auto& ind : result.population)
+      if (!ind.reason.empty()) {
+        why = ind.reason;
+        break;
+      }
+    throw Error(ExitCode::data, o.problem + ": no design of the final population could be evaluated (" +
+                                    std::to_string(result.evaluations) + " evaluations; the log " +
+                                    (out_path == "-" ? std::string("on stdout") : out_path) +
+                                    " has every reason); the first: " + why);
+  }
   if (failed) cli::warn(o.common, std::to_string(failed) + " of the final population failed to evaluate (see \"reason\")");
   const std::vector<Individual> front = pareto_front(result.population);
   if (front.empty()) cli::warn(o.common, "no feasible individual in the final population: the front is empty");
