@@ -146,8 +146,11 @@ def write_json(path, doc):
 # ---------------------------------------------------------------------------------------------
 
 def paper_variables(tools, work, threads):
-    """[(name, nominal, lower, upper)] of the paper's 48 variables, from localsearch's report."""
+    """[(name, nominal, lower, upper)] of the paper's 48 variables, from localsearch's report (cached in work)."""
     d = os.path.join(work, "bounds")
+    cache = os.path.join(d, "variables.json")
+    if os.path.exists(cache):
+        return [tuple(v) for v in json.load(open(cache))]
     os.makedirs(d, exist_ok=True)
     turns = os.path.join(d, "nominal-turns.csv")
     run([tools["track"], MACHINE, "-q", "-o", turns], "turnfit-track (nominal)")
@@ -161,7 +164,18 @@ def paper_variables(tools, work, threads):
     out = [(v["name"], v["start"], v["lower"], v["upper"]) for v in r["variables"]]
     if len(out) != 48:
         raise ToolError("the paper's variables: expected 48, the report lists %d" % len(out))
+    write_json(cache, out)
     return out
+
+
+def draw_truth(rng, variables, amplitude, control=False):
+    """The synth seed (never a shipped one) and the truth's dvars: each variable moved by a uniform
+    fraction of its bound range, up to amplitude (the control: not moved; the stream is the same)."""
+    seed = rng.randrange(2, 2 ** 31)
+    while seed in SHIPPED_SEEDS:
+        seed = rng.randrange(2, 2 ** 31)
+    fractions = {n: (0.0 if control else rng.uniform(-amplitude, amplitude)) for n, _, _, _ in variables}
+    return seed, {n: v + fractions[n] * (hi - lo) for n, v, lo, hi in variables}
 
 
 def effective_truth(truth_doc):
@@ -221,11 +235,7 @@ def one_truth(label, rng, variables, args, tools, work, control):
     """Draw, measure, find peaks, fit, judge one truth; returns the row (a dict)."""
     d = os.path.join(work, label)
     os.makedirs(d, exist_ok=True)
-    seed = rng.randrange(2, 2 ** 31)
-    while seed in SHIPPED_SEEDS:
-        seed = rng.randrange(2, 2 ** 31)
-    fractions = {n: (0.0 if control else rng.uniform(-args.amplitude, args.amplitude)) for n, _, _, _ in variables}
-    truth = {n: v + fractions[n] * (hi - lo) for n, v, lo, hi in variables}
+    seed, truth = draw_truth(rng, variables, args.amplitude, control)
     truth_path = os.path.join(d, "truth-dvars.json")
     write_json(truth_path, truth)
     row = {"label": label, "synth_seed": seed, "control": control, "failures": [], "notes": []}
@@ -267,9 +277,10 @@ def one_truth(label, rng, variables, args, tools, work, control):
     # The truth with and without the drift, the bunch's centre as the fit predicts it, against the
     # peaks: with the drift, the floor a perfect fit reaches (the peaks' own errors and the model's).
     row["truth_nodrift"] = norms(track_turns(tools, truth_path, True), peaks)[:2]
-    row["truth_drift"] = norms(track_turns(tools, eff_path, True), peaks)[:2]
+    eff_turns = track_turns(tools, eff_path, True)
+    row["truth_drift"] = norms(eff_turns, peaks)[:2]
     centres = true_centres(tdoc, peaks)
-    row["truth_drift_vs_centres"] = norms(track_turns(tools, eff_path, True), centres)[:2]
+    row["truth_drift_vs_centres"] = norms(eff_turns, centres)[:2]
 
     prob = os.path.join(d, "problem.json")
     write_json(prob, {"format": "turnfit-problem/1", "machine": MACHINE, "peaks": [rri2, rrl], "variables": "paper"})

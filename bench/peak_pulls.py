@@ -29,75 +29,22 @@ Usage: peak_pulls.py [--truths N] [--master-seed S] [--work DIR] [--bin DIR] [--
 Python 3 standard library only.
 """
 import argparse
-import csv
 import json
 import math
 import os
 import random
 import shutil
-import subprocess
 import sys
 import tempfile
 import time
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-REPO = os.path.dirname(HERE)
-MACHINE = os.path.join(REPO, "share", "turnfit", "ring8", "machine.json")
-SHIPPED_SEEDS = {88, 1}  # as blind_localsearch.py: the shipped measurement's and the man pages' synth seeds
+sys.path.insert(0, HERE)
+# The truths, the tools' runs and the files as the blind suite has them: one piece of code for both.
+from blind_localsearch import (MACHINE, REPO, ToolError, draw_truth, paper_variables, read_csv,  # noqa: E402
+                               run, write_json)
+
 FLAGS = ("merged", "wide", "weak", "gap", "edge", "ambiguous", "cross")
-
-
-class ToolError(Exception):
-    pass
-
-
-def run(args, what):
-    p = subprocess.run(args, capture_output=True, text=True)
-    if p.returncode != 0:
-        raise ToolError("%s failed (exit %d): %s\n%s" % (what, p.returncode, " ".join(args), p.stderr.strip()))
-    return p
-
-
-def read_csv(path):
-    with open(path, encoding="utf-8") as f:
-        return list(csv.DictReader(l for l in f.read().splitlines() if l.strip() and not l.startswith("#")))
-
-
-def write_json(path, doc):
-    with open(path, "w", encoding="utf-8") as f:
-        json.dump(doc, f, indent=1)
-        f.write("\n")
-
-
-def paper_variables(tools, work, threads):
-    """[(name, nominal, lower, upper)] of the paper's 48 variables, from localsearch's report (cached in work)."""
-    d = os.path.join(work, "bounds")
-    cache = os.path.join(d, "variables.json")
-    if os.path.exists(cache):
-        return [tuple(v) for v in json.load(open(cache))]
-    os.makedirs(d, exist_ok=True)
-    turns = os.path.join(d, "nominal-turns.csv")
-    run([tools["track"], MACHINE, "-q", "-o", turns], "turnfit-track (nominal)")
-    prob = os.path.join(d, "problem.json")
-    write_json(prob, {"format": "turnfit-problem/1", "machine": MACHINE, "peaks": turns,
-                      "variables": "paper", "sigma_mm": 1})
-    rep = os.path.join(d, "report.json")
-    run([tools["localsearch"], prob, "--max-iterations", "1", "--no-minimax", "--threads", str(threads),
-         "-q", "--report", rep, "-o", os.path.join(d, "best.json")], "turnfit-localsearch (bounds)")
-    out = [(v["name"], v["start"], v["lower"], v["upper"]) for v in json.load(open(rep))["variables"]]
-    if len(out) != 48:
-        raise ToolError("the paper's variables: expected 48, the report lists %d" % len(out))
-    write_json(cache, out)
-    return out
-
-
-def draw_truth(rng, variables, amplitude):
-    """The synth seed and the truth's dvars, drawn in blind_localsearch.py's order."""
-    seed = rng.randrange(2, 2 ** 31)
-    while seed in SHIPPED_SEEDS:
-        seed = rng.randrange(2, 2 ** 31)
-    fractions = {n: rng.uniform(-amplitude, amplitude) for n, _, _, _ in variables}
-    return seed, {n: v + fractions[n] * (hi - lo) for n, v, lo, hi in variables}
 
 
 def measure(label, seed, truth, args, tools, work):
