@@ -6,6 +6,7 @@
 #include <algorithm>
 #include <functional>
 #include <map>
+#include <optional>
 #include <tuple>
 #include <atomic>
 #include <chrono>
@@ -92,14 +93,19 @@ struct Residuals {
 
   /// The residuals of the design at u (one design simulated).
   Point evaluate(const std::vector<double>& u) const {
+    const TurnPatternResult r = p.simulate(x_of(u.data()));
+    ++evaluations;
+    if (!r.ok) ++failed;
+    return point_of(u, r);
+  }
+
+  /// The residuals of the design at u from its simulation r.
+  Point point_of(const std::vector<double>& u, const TurnPatternResult& r) const {
     Point pt;
     pt.u = u;
     pt.res.resize(nres);
     pt.matched.assign(nmeas, 0);
     const std::vector<double> x = x_of(u.data());
-    const TurnPatternResult r = p.simulate(x);
-    ++evaluations;
-    if (!r.ok) ++failed;
     for (size_t i = 0; i < nmeas; ++i) {
       pt.matched[i] = r.ok && r.matched[i];
       pt.res[i] = (pt.matched[i] ? r.delta_mm[i] : miss_mm) * inv_sigma[i];
@@ -192,9 +198,11 @@ struct Residuals {
   /// residuals may change between passes, not only their weights), and the kept Jacobian, when
   /// it was formed at u, is kept with its data rows rescaled by inv_sigma / old_inv_sigma (u did
   /// not move, so d delta / du did not either; the priors' rows keep theirs). Returns whether it
-  /// was kept; if not, Ceres forms one at u (from these residuals).
-  bool restart_at(const std::vector<double>& u, const std::vector<double>& old_inv_sigma) const {
-    Point at = evaluate(u);
+  /// was kept; if not, Ceres forms one at u (from these residuals). `known`: u's simulation
+  /// under the current model when the caller has it (then no design is simulated here).
+  bool restart_at(const std::vector<double>& u, const std::vector<double>& old_inv_sigma,
+                  const TurnPatternResult* known = nullptr) const {
+    Point at = known ? point_of(u, *known) : evaluate(u);
     std::lock_guard<std::mutex> lock(mu);
     current = at;
     trial = Point();
@@ -746,8 +754,9 @@ LocalSearchResult local_search(TurnPatternProblem& p, const std::vector<double>&
     bool moved = false;
     std::vector<double> est;
     std::vector<double> factor(nmeas, 1), est_trust;
+    std::optional<TurnPatternResult> at_u;  // u's simulation under the new shift, when made here
     if (estimate) {
-      const TurnPatternResult r1 = simulate(res.x_of(u.data()));
+      const TurnPatternResult& r1 = at_u.emplace(simulate(res.x_of(u.data())));
       size_t nmatched = 0;
       for (size_t i = 0; i < nmeas; ++i) nmatched += r1.ok && r1.matched[i];
       for (size_t q = 0; q < meas.probes.size(); ++q) {
@@ -805,7 +814,7 @@ LocalSearchResult local_search(TurnPatternProblem& p, const std::vector<double>&
     // The new pass starts where the last one ended: u's residuals evaluated anew (new weights,
     // new centroid shift), the Jacobian there kept with its rows reweighted (the shift hardly
     // depends on the design: its derivatives are left out).
-    if (res.restart_at(u, old_inv_sigma)) {
+    if (res.restart_at(u, old_inv_sigma, at_u ? &*at_u : nullptr)) {
       ++out.kept_jacobians;
       if (s.check_kept_jacobian) {
         Point at;
