@@ -221,11 +221,7 @@ std::unique_ptr<TurnPatternProblem> TurnPatternProblem::from_json(const nlohmann
 
   // What the probes measure: the bunch's centre (default when the machine has a bunch with
   // spread) or the reference particle.
-  std::vector<QuadratureNode> nodes;
-  if (m.bunch) {
-    if (!m.bunch->file.empty()) nodes = named_by("machine", [&] { return bunch_quadrature(read_bunch_file(m.bunch->file)); });
-    else nodes = bunch_quadrature(*m.bunch);
-  }
+  std::vector<QuadratureNode> nodes = named_by("machine", [&] { return machine_bunch_quadrature(m); });
   std::string bunch_mode = nodes.empty() ? "reference" : "centroid";
   if (j.contains("bunch")) {
     bunch_mode = k.text(j["bunch"], "bunch");

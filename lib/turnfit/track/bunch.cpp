@@ -332,6 +332,12 @@ ParticleState offset_state(const Injection& inj, double mass_MeV, double rf_MHz,
   return injection_state(in, mass_MeV);
 }
 
+std::vector<QuadratureNode> machine_bunch_quadrature(const Machine& m, const std::string& file) {
+  const std::string f = !file.empty() ? file : m.bunch ? m.bunch->file : std::string();
+  if (!f.empty()) return bunch_quadrature(read_bunch_file(f));
+  return m.bunch ? bunch_quadrature(*m.bunch) : std::vector<QuadratureNode>{};
+}
+
 CentroidTurns centroid_turns(const TrackModel& model, const ParticleState& reference, const Injection& inj,
                              double mass_MeV, const std::vector<QuadratureNode>& nodes, const TrackSettings& settings,
                              unsigned threads) {
@@ -339,7 +345,7 @@ CentroidTurns centroid_turns(const TrackModel& model, const ParticleState& refer
   const size_t n = nodes.size();
   // Each node's crossings as [probe][turn - 1] (NaN radius: not crossed).
   std::vector<std::vector<std::vector<TurnRecord>>> hit(n, std::vector<std::vector<TurnRecord>>(model.probes.size()));
-  std::vector<unsigned char> started(n + 1, 0);
+  std::vector<unsigned char> started(n, 0);
   std::exception_ptr ref_error;
   parallel_for(n + 1, threads, [&](size_t i, unsigned) {
     if (i == n) {  // the reference particle: its errors are the caller's

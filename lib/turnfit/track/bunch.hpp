@@ -52,6 +52,11 @@ std::vector<QuadratureNode> bunch_quadrature(const Bunch& b);
 /// spread are left out).
 std::vector<QuadratureNode> bunch_quadrature(const std::vector<BunchOffset>& sample);
 
+/// The quadrature of the bunch a machine tracks: of the offsets in `file` when one is given,
+/// else of its bunch block's file, else of its bunch block's Gaussian; empty when there is no
+/// bunch with spread. Errors reading a file name it and its line.
+std::vector<QuadratureNode> machine_bunch_quadrature(const Machine& m, const std::string& file = "");
+
 /// The bunch's centre at each crossing of the reference particle, by a quadrature.
 struct CentroidTurns {
   std::vector<TurnRecord> reference;  ///< the reference particle's crossings

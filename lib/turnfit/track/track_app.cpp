@@ -195,9 +195,7 @@ int run_track(const TrackOptions& o) {
   if (o.centroid && (!o.kicks.empty() || !o.histograms.empty() || !o.orbit.empty()))
     throw usage_error("--centroid writes the bunch's centre only: not with --kicks, --histograms or --orbit");
   if (o.centroid) {
-    std::vector<QuadratureNode> nodes;
-    if (!bfile.empty()) nodes = bunch_quadrature(read_bunch_file(bfile));
-    else if (m.bunch) nodes = bunch_quadrature(*m.bunch);
+    const std::vector<QuadratureNode> nodes = machine_bunch_quadrature(m, o.bunch);
     if (nodes.empty())
       throw data_error(m.path, 0, "/bunch: --centroid needs a bunch with spread: the machine's bunch block "
                                   "(emittances, sigma_E_MeV, sigma_phase_deg) or --bunch FILE");
