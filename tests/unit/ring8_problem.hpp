@@ -24,6 +24,19 @@ inline std::string ring8(const std::string& file) {
   return std::string(TURNFIT_TEST_DIR) + "/../share/turnfit/ring8/" + file;
 }
 
+/// ring8 with each variable names[j] moved by frac[j] of its bound range; xt receives the values.
+inline Machine moved_ring8(const std::vector<std::string>& names, const std::vector<double>& frac,
+                           std::vector<double>& xt) {
+  Machine m = load_machine(ring8("machine.json"));
+  xt.clear();
+  for (size_t j = 0; j < names.size(); ++j) {
+    const DesignVariable& dv = m.dvars.at(names[j]);
+    xt.push_back(dvar_value(m, names[j]) + frac[j] * (dv.upper - dv.lower));
+  }
+  set_dvars(m, names, xt);
+  return m;
+}
+
 /// A machine's own turns as a peaks file (17 digits, so a problem at the machine matches exactly).
 inline std::string turns_as_peaks(const Machine& m, const TempDir& tmp, const std::string& name) {
   const TrackModel model = make_track_model(m);

@@ -19,6 +19,7 @@
 using namespace turnfit;
 using turnfit::test::TempDir;
 using turnfit::test::load_turn_problem;
+using turnfit::test::moved_ring8;
 using turnfit::test::ring8;
 using turnfit::test::turns_as_peaks;
 
@@ -29,13 +30,7 @@ namespace {
 std::unique_ptr<TurnPatternProblem> truth_problem(const TempDir& tmp, const std::vector<std::string>& names,
                                                   const std::vector<double>& frac, std::vector<double>& xt,
                                                   const std::string& variables = "") {
-  Machine truth = load_machine(ring8("machine.json"));
-  xt.clear();
-  for (size_t j = 0; j < names.size(); ++j) {
-    const DesignVariable& dv = truth.dvars.at(names[j]);
-    xt.push_back(dvar_value(truth, names[j]) + frac[j] * (dv.upper - dv.lower));
-  }
-  set_dvars(truth, names, xt);
+  const Machine truth = moved_ring8(names, frac, xt);
   const std::string peaks = turns_as_peaks(truth, tmp, "truth.csv");
   std::string vars = "[";
   for (size_t j = 0; j < names.size(); ++j) vars += (j ? ", \"" : "\"") + names[j] + "\"";

@@ -12,6 +12,7 @@
 using namespace turnfit;
 using turnfit::test::TempDir;
 using turnfit::test::load_turn_problem;
+using turnfit::test::moved_ring8;
 using turnfit::test::ring8;
 
 TEST_CASE("local search: a new sigma pass keeps the last pass's Jacobian, reweighted, equal to one formed anew",
@@ -22,14 +23,9 @@ TEST_CASE("local search: a new sigma pass keeps the last pass's Jacobian, reweig
   // the data rows' weights change by factors ~3 and ~5, differently per probe, between passes: a
   // Jacobian kept without reweighting, or reweighted the wrong way, would be off by that much.
   TempDir tmp;
-  Machine truth = load_machine(ring8("machine.json"));
   const std::vector<std::string> names = {"phiinit", "prinit", "rinit", "vchange"};
   std::vector<double> xt;
-  for (const auto& n : names) {
-    const DesignVariable& dv = truth.dvars.at(n);
-    xt.push_back(dvar_value(truth, n) + 0.05 * (dv.upper - dv.lower) * (n == "rinit" ? -1 : 1));
-  }
-  set_dvars(truth, names, xt);
+  const Machine truth = moved_ring8(names, {0.05, 0.05, -0.05, 0.05}, xt);
   const TrackModel model = make_track_model(truth);
   std::vector<TurnRecord> turns;
   track_particle(model, injection_state(effective_injection(truth), truth.particle.mass_MeV),

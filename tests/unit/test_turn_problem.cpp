@@ -22,6 +22,7 @@
 using namespace turnfit;
 using turnfit::test::TempDir;
 using turnfit::test::load_turn_problem;
+using turnfit::test::moved_ring8;
 using turnfit::test::ring8;
 using turnfit::test::turns_as_peaks;
 
@@ -212,14 +213,9 @@ TEST_CASE("local search (LM): a noiseless truth with four settings changed comes
   // they are determined (the turns depend on each), and without noise the only error left is
   // the convergence tolerance (relative cost change 1e-9).
   TempDir tmp;
-  Machine truth = load_machine(ring8("machine.json"));
   const std::vector<std::string> names = {"phiinit", "prinit", "rinit", "vchange"};
   std::vector<double> xt;
-  for (const auto& n : names) {
-    const DesignVariable& dv = truth.dvars.at(n);
-    xt.push_back(dvar_value(truth, n) + 0.2 * (dv.upper - dv.lower) * (n == "prinit" ? -1 : 1));
-  }
-  set_dvars(truth, names, xt);
+  const Machine truth = moved_ring8(names, {0.2, -0.2, 0.2, 0.2}, xt);
   const std::string peaks = turns_as_peaks(truth, tmp, "truth.csv");
   auto p = load_turn_problem(tmp.file("p.json", problem_text(peaks, "[\"phiinit\", \"prinit\", \"rinit\", \"vchange\"]",
                                                               ", \"sigma_mm\": 0.01")));
