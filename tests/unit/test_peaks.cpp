@@ -110,6 +110,19 @@ int count_flag(const PeakResult& r, unsigned flag) {
   return static_cast<int>(std::count_if(r.peaks.begin(), r.peaks.end(), [&](const Peak& p) { return (p.flags & flag) != 0; }));
 }
 
+/// turnfit-peakfind on a synthetic profile given as the tool reads it (header, then the samples):
+/// its CSV into out, its warnings into err.
+void peakfind_capturing(const Synthetic& p, const std::string& header, const std::string& file, std::ostringstream& out,
+                        std::ostringstream& err) {
+  std::string text = header;
+  for (size_t k = 0; k < p.x.size(); ++k) text += std::to_string(p.x[k]) + "," + std::to_string(p.y[k]) + "\n";
+  PeakfindOptions o;
+  o.common.no_provenance = true;
+  std::streambuf* old = std::cerr.rdbuf(err.rdbuf());
+  peakfind(parse_profile(text, file), o, out);
+  std::cerr.rdbuf(old);
+}
+
 }  // namespace
 
 TEST_CASE("peaks: separations from 25 mm down to 4 mm, sigma 1.5 mm, noise and baseline", "[peaks]") {
@@ -561,14 +574,8 @@ TEST_CASE("peaks: turns that cross are flagged and not silently numbered", "[pea
   for (const Peak& pk : r.peaks)
     if (pk.flags & kPeakGap) CHECK((pk.flags & kPeakCross) != 0);
   // The warning names the probe, the turns and their radius.
-  std::string text = "# probe=RRX first_turn=9\nposition_mm,intensity\n";
-  for (size_t k = 0; k < p.x.size(); ++k) text += std::to_string(p.x[k]) + "," + std::to_string(p.y[k]) + "\n";
-  PeakfindOptions o;
-  o.common.no_provenance = true;
   std::ostringstream os, err;
-  std::streambuf* old = std::cerr.rdbuf(err.rdbuf());
-  peakfind(parse_profile(text, "x.csv"), o, os);
-  std::cerr.rdbuf(old);
+  peakfind_capturing(p, "# probe=RRX first_turn=9\nposition_mm,intensity\n", "x.csv", os, err);
   char expect[200];
   std::snprintf(expect, sizeof expect, "RRX (x.csv): turns %d-%d (r = %.2f to %.2f mm) may cross",
                 r.peaks[cross->first].turn, r.peaks[cross->last].turn, r.peaks[cross->first].r_mm,
@@ -597,14 +604,8 @@ TEST_CASE("peaks: a gap between one and two separations is numbered as one turn 
   CHECK(r.doubts[0].missing == 0);
   CHECK(r.doubts[0].alternative == 1);
   CHECK(peak_flag_string(r.peaks[15].flags) == "ambiguous");
-  std::string text = "# probe=P3\nposition_mm,intensity\n";
-  for (size_t k = 0; k < p.x.size(); ++k) text += std::to_string(p.x[k]) + "," + std::to_string(p.y[k]) + "\n";
-  PeakfindOptions o;
-  o.common.no_provenance = true;
   std::ostringstream os, err;
-  std::streambuf* old = std::cerr.rdbuf(err.rdbuf());
-  peakfind(parse_profile(text, "p3.csv"), o, os);
-  std::cerr.rdbuf(old);
+  peakfind_capturing(p, "# probe=P3\nposition_mm,intensity\n", "p3.csv", os, err);
   char expect[200];
   std::snprintf(expect, sizeof expect,
                 "P3 (p3.csv): turn 16 at r = %.2f mm: the gap before it fits 0 or 1 missing turns alike", r.peaks[15].r_mm);
