@@ -48,6 +48,12 @@ void add_localsearch_options(CLI::App& app, LocalSearchOptions& o) {
                  "Steps on one Jacobian while each lowers the cost by half of what it predicts, at most this many "
                  "in a row (default 8; 0: a new Jacobian every step)")
       ->check(CLI::Range(0, 1000));
+  app.add_flag("!--no-broyden", o.settings.broyden,
+               "Frozen steps keep their Jacobian as it was formed (default: Broyden's update after each)");
+  app.add_option("--decrement-tolerance", o.settings.decrement_tolerance,
+                 "Stop a pass where the Gauss-Newton step would lower chi2 by less than this, in chi2 per degree "
+                 "of freedom (default 0.05; 0: Ceres' tolerances alone)")
+      ->check(CLI::Range(0.0, 1e6));
   app.add_flag("!--no-minimax", o.settings.minimax,
                "Skip the minimax polish (-o then gets the least-squares design)");
   app.add_option("--minimax-tolerance", o.settings.minimax_tolerance_mm,
@@ -288,7 +294,8 @@ nlohmann::json localsearch_report(const TurnPatternProblem& p, const LocalSearch
                      {"accepted", t.accepted},
                      {"relative_decrease", jnum(t.relative_decrease)},
                      {"trust_region_radius", jnum(t.trust_region_radius)},
-                     {"fresh_jacobian", t.fresh}});
+                     {"fresh_jacobian", t.fresh},
+                     {"decrement", jnum(t.decrement)}});
   j["trace"] = trace;
   nlohmann::json vars = nlohmann::json::array();
   for (const auto& v : r.variables)
