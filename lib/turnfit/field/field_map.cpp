@@ -67,17 +67,17 @@ double PolarGrid::dtheta_rad() const { return 2 * kPi / (static_cast<double>(sym
 double PolarGrid::theta_min_rad() const { return theta_min_deg * kPi / 180.0; }
 
 PolarFieldMap::PolarFieldMap(const PolarGrid& grid, std::vector<double> bz_T, std::string label)
-    : grid_(grid), bz_(std::move(bz_T)), label_(std::move(label)) {
+    : grid_(grid), bz_(std::make_shared<const std::vector<double>>(std::move(bz_T))), label_(std::move(label)) {
   if (grid_.nr < 2 || grid_.ntheta < 1 || grid_.symmetry < 1 || !(grid_.dr_mm > 0) ||
       !(grid_.r_min_mm >= 0) || !std::isfinite(grid_.theta_min_deg))
     throw Error(ExitCode::data, "field map: invalid grid (need nr >= 2, ntheta >= 1, dr > 0, "
                                 "r_min >= 0, symmetry >= 1)");
-  if (bz_.size() != static_cast<size_t>(grid_.nr) * grid_.ntheta)
-    throw Error(ExitCode::data, "field map: " + std::to_string(bz_.size()) + " values for a " +
+  if (bz_->size() != static_cast<size_t>(grid_.nr) * grid_.ntheta)
+    throw Error(ExitCode::data, "field map: " + std::to_string(bz_->size()) + " values for a " +
                                     std::to_string(grid_.nr) + " x " + std::to_string(grid_.ntheta) +
                                     " grid");
-  for (size_t k = 0; k < bz_.size(); ++k)
-    if (!std::isfinite(bz_[k]))
+  for (size_t k = 0; k < bz_->size(); ++k)
+    if (!std::isfinite((*bz_)[k]))
       throw Error(ExitCode::data, "field map: value " + std::to_string(k) + " is not finite");
   build();
 }
@@ -100,7 +100,7 @@ void PolarFieldMap::build() {
   // Hermite basis: p(t) = [1 t t^2 t^3] H [p0 p1 p0' p1']^T.
   Eigen::Matrix4d H;
   H << 1, 0, 0, 0, 0, 0, 1, 0, -3, 3, -2, -1, 2, -2, 1, 1;
-  coef_.resize(static_cast<size_t>(nr - 1) * nt);
+  auto coef = std::make_shared<std::vector<std::array<double, 16>>>(static_cast<size_t>(nr - 1) * nt);
   for (int i = 0; i < nr - 1; ++i) {
     for (int j = 0; j < nt; ++j) {
       const int j1 = (j + 1) % nt;
@@ -110,11 +110,13 @@ void PolarFieldMap::build() {
           Fu(i, j), Fu(i, j1), Fuv(i, j), Fuv(i, j1),        //
           Fu(i + 1, j), Fu(i + 1, j1), Fuv(i + 1, j), Fuv(i + 1, j1);
       Eigen::Matrix4d A = H * G * H.transpose();
-      auto& c = coef_[static_cast<size_t>(i) * nt + j];
+      auto& c = (*coef)[static_cast<size_t>(i) * nt + j];
       for (int k = 0; k < 4; ++k)
         for (int l = 0; l < 4; ++l) c[k * 4 + l] = A(k, l);
     }
   }
+  patch_ = coef->data();
+  coef_ = std::move(coef);
 }
 
 bool PolarFieldMap::sample(double r_m, double theta_rad, FieldSample& out) const {
@@ -129,7 +131,7 @@ bool PolarFieldMap::sample(double r_m, double theta_rad, FieldSample& out) const
   int j = static_cast<int>(y);
   if (j >= grid_.ntheta) j = grid_.ntheta - 1;  // y rounded up to nt
   const double v = y - j;
-  const auto& a = coef_[static_cast<size_t>(i) * grid_.ntheta + j];
+  const auto& a = patch_[static_cast<size_t>(i) * grid_.ntheta + j];
   // Horner in v for each power of u, with the v-derivative alongside.
   double row[4], drow[4];
   for (int k = 0; k < 4; ++k) {

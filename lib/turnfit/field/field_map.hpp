@@ -4,6 +4,7 @@
 
 #include <array>
 #include <functional>
+#include <memory>
 #include <string>
 #include <vector>
 
@@ -62,9 +63,9 @@ class PolarFieldMap {
   /// The grid.
   const PolarGrid& grid() const { return grid_; }
   /// Grid values [T], radius-major.
-  const std::vector<double>& values() const { return bz_; }
+  const std::vector<double>& values() const { return *bz_; }
   /// Grid value at radius index i, azimuth index j [T].
-  double value(int i, int j) const { return bz_[static_cast<size_t>(i) * grid_.ntheta + j]; }
+  double value(int i, int j) const { return (*bz_)[static_cast<size_t>(i) * grid_.ntheta + j]; }
   /// Free-text label (file label or generator description).
   const std::string& label() const { return label_; }
   /// Azimuthal average of the grid values at radius index i [T].
@@ -74,12 +75,16 @@ class PolarFieldMap {
 
  private:
   void build();
+  // The values and patches never change after construction and are shared between copies: an
+  // optimizer builds a model (holding a copy of the map) per design, and copying ring8's 2.7 MB
+  // of patches cost each design a memcpy and 700 page faults.
   PolarGrid grid_;
-  std::vector<double> bz_;
+  std::shared_ptr<const std::vector<double>> bz_;
   std::string label_;
   double r_min_ = 0, r_max_ = 0, theta_min_ = 0;
   double inv_dr_ = 0, inv_dth_ = 0;
-  std::vector<std::array<double, 16>> coef_;  ///< per cell: a[k*4+l] u^k v^l
+  std::shared_ptr<const std::vector<std::array<double, 16>>> coef_;  ///< per cell: a[k*4+l] u^k v^l
+  const std::array<double, 16>* patch_ = nullptr;                    ///< coef_'s data (shared, so valid in copies)
 };
 
 /// Samples f(r_m, theta_rad) [T] on a grid: the analytic-field generator used by tests
