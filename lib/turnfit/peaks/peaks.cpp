@@ -521,7 +521,8 @@ double expected_separation(const std::vector<Gauss>& g, size_t i) {
 /// every turn carries the same particles (on turnfit-synth profiles the fitted areas of separated
 /// turns scatter by 1-3 %, the shape's doing; the tuning preferred 0.5 % to 1 and 2 %).
 constexpr double kAreaEps = 0.005;
-/// ... unless it is this fraction off and not merged: a weak or cut turn keeps its own area.
+/// ... unless it is clear of its neighbours (kClearWidths) and this fraction off: a weak or cut
+/// turn keeps its own area. A crowded turn never does: its fitted area is what goes wrong.
 constexpr double kAreaOwn = 0.25;
 /// A clear turn (its tail fitted alone): both neighbours at least this many widths away.
 constexpr double kClearWidths = 5;
@@ -539,8 +540,8 @@ constexpr double kTailEps = 0.1;
 /// both moving outward (on turnfit-synth truths by up to 0.7 mm). Here every turn gets a tail
 /// (tail_shape) and the expected area:
 /// 1. each single turn's expected area: the median of the areas of the 12 turns of their own
-///    (neither merged nor wide) nearest by index, kept within kAreaEps unless the turn is
-///    kAreaOwn off and not merged;
+///    (neither merged nor wide) nearest by index, kept within kAreaEps unless the turn is clear
+///    of its neighbours and kAreaOwn off;
 /// 2. the tails of clear turns, each fitted alone; a turn's expected tail is the median of the
 ///    kTailNearest clear turns nearest by index (no clear turn: no tails);
 /// 3. all turns refitted with their expected tails, then once more with their own tails kept
@@ -567,7 +568,11 @@ std::vector<Gauss> shaped_turns(Work& w, const std::vector<Gauss>& g) {
     for (size_t c = 0; c < std::min<size_t>(near.size(), 12); ++c) v.push_back(near[c].second);
     if (v.size() < 3) continue;
     const double ref = median(v);
-    if ((g[i].flags & kPeakMerged) || std::abs(area[i] / ref - 1) < kAreaOwn) e[i].area_ref = ref;
+    double d = 1e300;
+    if (i > 0) d = std::min(d, g[i].mu - g[i - 1].mu);
+    if (i + 1 < n) d = std::min(d, g[i + 1].mu - g[i].mu);
+    const bool crowded = (g[i].flags & kPeakMerged) || d < kClearWidths * g[i].sigma;
+    if (crowded || std::abs(area[i] / ref - 1) < kAreaOwn) e[i].area_ref = ref;
   }
   w.area_eps = kAreaEps;
   w.tmin = kTailMin;
