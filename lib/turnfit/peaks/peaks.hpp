@@ -102,7 +102,9 @@ struct PeakResult {
 /// Finds the turns of a profile (turnfit-peakfind(1), ALGORITHM): baseline, smoothed derivative
 /// zero-crossings with thresholds (the paper, Sec. "Peak detection of probe measurement"), a fit of
 /// Gaussian turn shapes (Levenberg-Marquardt) for grid-independent positions, splitting of wide
-/// peaks by the neighbours' width and separation, then flags and turn numbers: a turn is missing
+/// peaks by the neighbours' width and separation, a refit of turn shapes with an inward tail and
+/// the area every turn shares for the reported positions (the turns' means, turnfit-peakfind(1),
+/// "Position reported"), then flags and turn numbers: a turn is missing
 /// only where the envelope of the oscillating separations and a model of position against turn
 /// (trend plus betatron oscillation) say so; doubts (ambiguous gaps, turns that may cross) are
 /// flagged and listed in `doubts`.

@@ -16,7 +16,8 @@ void add_peakfind_options(CLI::App& app, PeakfindOptions& o) {
   app.description(
       "The turns in a probe profile (position_mm,intensity): downward zero-crossings of the smoothed\n"
       "first derivative with thresholds on height, area and slope, then a fit of Gaussian turn shapes\n"
-      "that makes positions independent of the reading grid and splits turns that merge. Writes\n"
+      "that makes positions independent of the reading grid and splits turns that merge, and a refit\n"
+      "with an inward tail and equal areas for the positions (the turns' means). Writes\n"
       "probe,turn,r_mm,height,area,width_mm,r_err_mm,flag (r_err_mm: the position's 1-sigma uncertainty, noise\n"
       "and systematic). Thresholds are fractions of the tallest peak (P).");
   app.add_option("profile", o.profile, "Probe profile CSV ('-' for stdin)")->capture_default_str();
