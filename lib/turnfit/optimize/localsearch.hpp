@@ -28,6 +28,10 @@ struct LocalSearchSettings {
   /// model learns the direction it just moved along, so frozen steps follow a curved valley.
   /// On blind case truth1 it cut the least-squares designs from 1786 to 1021 at the same chi2.
   bool broyden = true;
+  /// Pass 1 by turn continuation: the first stage fits the turns up to 1/stages of the measured
+  /// turn range (the others weighed 1e-3), each next one a further 1/stages, from where the last
+  /// ended. 1: all turns at once.
+  int stages = 3;
   /// A pass stops at a Jacobian formed at its current design when the Gauss-Newton step from
   /// there would lower chi2 by less than this, in units of the current chi2 per degree of
   /// freedom (the Newton decrement: the linearized optimum is then within sqrt(tol) sigma of the

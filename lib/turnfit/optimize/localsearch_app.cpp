@@ -48,6 +48,10 @@ void add_localsearch_options(CLI::App& app, LocalSearchOptions& o) {
                  "Steps on one Jacobian while each lowers the cost by half of what it predicts, at most this many "
                  "in a row (default 8; 0: a new Jacobian every step)")
       ->check(CLI::Range(0, 1000));
+  app.add_option("--stages", o.settings.stages,
+                 "Pass 1 by turn continuation: the first third of the measured turns, two thirds, all (default 3; "
+                 "1: all at once)")
+      ->check(CLI::Range(1, 100));
   app.add_flag("!--no-broyden", o.settings.broyden,
                "Frozen steps keep their Jacobian as it was formed (default: Broyden's update after each)");
   app.add_option("--decrement-tolerance", o.settings.decrement_tolerance,
