@@ -68,6 +68,26 @@ machine's document before tracking as
         (vchange is additive, turnfit-machine(5)), so scaling both scales their sum exactly
         (the split between vmaincavk and vchange is not unique, but the alternatives differ by
         vchange * dvoltage_rel ~ 1e-6 MV, far below any sigma).
+Then the bunch's sample mean, recorded in truth.json "bunch_mean" (synth tracks N particles whose
+mean is not the reference particle: 2 deg / sqrt(2000) = 0.045 deg rms of phase at ring8's bunch;
+the fit's quadrature is centred on its injection, so the injection variables take up the mean),
+from lib/turnfit/track/bunch.cpp, offset_state(): every particle starts at
+   r_mm + dr_mm, energy_MeV + dE_MeV, p_r = P_i (pr_betagamma / P + dpr_mrad * 1e-3)
+        (P_i = beta*gamma of the particle's energy, P of the injection's), t_ns + dt_ns,
+        dt_ns = dphase_deg / (360 f_rf) * 1e3 (positive starts later), at the injection azimuth.
+No design variable moves the start time. A particle that starts dt late at azimuth phi follows the
+path of one that starts on time at phi + dphi, dphi = -dt / (dt/dphi) < 0 for dt > 0 (the tracker's
+azimuth grows with time; dt/dphi = r / (v p_theta/p), physics/azimuth_eom.hpp), with r and p_r/p
+moved by their derivatives along that path (dr/dphi = r (p_r/p) / (p_theta/p), d(p_r/p)/dphi =
+p_theta/p - r b: at ring8's injection p_r/p = -0.042 and the sector field make both matter). synth
+evaluates this in the truth's field at the mean start (synth.cpp, bunch_mean()) and records the
+result in "bunch_mean" "at_reference_time" (dr_mm, dpr_mrad, dE_MeV, dphi_deg), so
+   rinit   += at.dr_mm;  benergy += at.dE_MeV / 1000;  phiinit += at.dphi_deg
+        (about -dphase_deg / h = -dphase_deg / 6 on ring8's isochronous orbit; the injection azimuth)
+   prinit   = P' (prinit_drift / P + at.dpr_mrad * 1e-3), P' = beta*gamma at the new benergy:
+        the quadrature's nodes sit at p_r/p offsets around the injection's p_r/p, as offset_state puts them
+The vertical mean (dz_mm, dpz_mrad) has no design variable and does not move the radial motion to
+first order in a median-plane-symmetric field; it is recorded, not mapped.
 The truth's dvars are read back from truth.json "dvars" (and checked against what was drawn).
 
 --peer (needs SciPy: Debian's python3-scipy, e.g. /usr/bin/python3): the same truth fitted by
@@ -181,7 +201,8 @@ def draw_truth(rng, variables, amplitude, control=False):
 
 
 def effective_truth(truth_doc):
-    """The truth's dvars with synth's drift applied (see the module doc)."""
+    """The truth's dvars with synth's drift and its bunch's sample mean applied (see the module doc).
+    A truth.json without "bunch_mean" (synth before it recorded one) gets the drift alone, with a note."""
     dv = dict(truth_doc["dvars"])
     dr = truth_doc["drift"]
     eff = dict(dv)
@@ -191,6 +212,17 @@ def effective_truth(truth_doc):
     eff["prinit"] = dv["prinit"] + betagamma * dr["dpr_mrad"] * 1e-3
     for name in VOLTAGE_VARS:
         eff[name] = dv[name] * (1 + dr["dvoltage_rel"])
+    mean = truth_doc.get("bunch_mean")
+    if mean is None:
+        print("note: truth.json (seed %s) has no bunch_mean (an older turnfit-synth): the effective truth "
+              "leaves out the bunch's sample mean" % truth_doc.get("seed"), file=sys.stderr)
+        return eff
+    at = mean["at_reference_time"]
+    eff["rinit"] += at["dr_mm"]
+    eff["phiinit"] = dv["phiinit"] + at["dphi_deg"]
+    eff["benergy"] = dv["benergy"] + at["dE_MeV"] / 1000.0
+    gamma1 = 1 + eff["benergy"] * 1000.0 / PROTON_MEV
+    eff["prinit"] = math.sqrt(gamma1 * gamma1 - 1) * (eff["prinit"] / betagamma + at["dpr_mrad"] * 1e-3)
     return eff
 
 

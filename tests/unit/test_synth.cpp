@@ -577,3 +577,115 @@ TEST_CASE("synth: truth.json holds the hidden values", "[synth]") {
   // The truth, not the drifted run (whose dr_mm is non-zero, checked above): exact.
   CHECK(t["machine_doc"]["injection"]["r_mm"].get<double>() == Approx(2097.4).epsilon(0).margin(1e-9));
 }
+
+TEST_CASE("synth: bunch_mean is the mean of the particles tracked, in truth.json", "[synth]") {
+  Machine m = iso_machine();
+  SynthSettings s = quick_settings(6, 50);
+  s.phases = false;
+  s.seed = 23;
+  SynthResult r = synthesize(m, s);
+  // The particles synth tracked: the machine's Gaussian, drawn from the run's seed.
+  const std::vector<BunchOffset> offs = gaussian_bunch(*m.bunch, 50, 23);
+  double mr = 0, mp = 0, mz = 0, mpz = 0, me = 0, mph = 0;
+  for (const auto& o : offs) {
+    mr += o.dr_mm / 50;
+    mp += o.dpr_mrad / 50;
+    mz += o.dz_mm / 50;
+    mpz += o.dpz_mrad / 50;
+    me += o.dE_MeV / 50;
+    mph += o.dphase_deg / 50;
+  }
+  const BunchMean& b = r.bunch_mean;
+  CHECK(b.particles == 50);
+  CHECK(b.offset.dr_mm == Approx(mr).epsilon(1e-12));
+  CHECK(b.offset.dpr_mrad == Approx(mp).epsilon(1e-12));
+  CHECK(b.offset.dz_mm == Approx(mz).margin(1e-15));  // the iso bunch has no vertical emittance
+  CHECK(b.offset.dpz_mrad == Approx(mpz).margin(1e-15));
+  CHECK(b.offset.dE_MeV == Approx(me).epsilon(1e-12));
+  CHECK(b.offset.dphase_deg == Approx(mph).epsilon(1e-12));
+  // A 50-particle sample of 2 deg rms is off the reference by ~0.28 deg rms: a test that can see it.
+  CHECK(std::fabs(mph) > 1e-3);
+  CHECK(b.dt_ns == Approx(mph / (360 * 50.65) * 1e3).epsilon(1e-12));
+  // Isochronous uniform field: the bunch's mean, dt late, runs the orbit the reference particle's
+  // azimuth reaches dt later, 360 f_rf / h degrees per unit of time behind: dphi = -dphase / h.
+  CHECK(b.dphi_deg == Approx(-mph / 6).epsilon(2e-3));
+  CHECK(b.at_reference_time.dphase_deg == 0);
+  CHECK(b.at_reference_time.dE_MeV == b.offset.dE_MeV);
+
+  const nlohmann::json t = truth_json(m, s, r);
+  REQUIRE(t.contains("bunch_mean"));
+  CHECK(t["bunch_mean"]["particles"] == 50);
+  CHECK(t["bunch_mean"]["dphase_deg"].get<double>() == b.offset.dphase_deg);
+  CHECK(t["bunch_mean"]["dpr_mrad"].get<double>() == b.offset.dpr_mrad);
+  CHECK(t["bunch_mean"]["dt_ns"].get<double>() == b.dt_ns);
+  CHECK(t["bunch_mean"]["at_reference_time"]["dphi_deg"].get<double>() == b.dphi_deg);
+  CHECK(t["bunch_mean"]["at_reference_time"]["dr_mm"].get<double>() == b.at_reference_time.dr_mm);
+
+  // A bunch file: the first --particles rows are tracked, and their mean is recorded.
+  test::TempDir tmp;
+  m.bunch->file = tmp.file("bunch.csv", "dr_mm,dpr_mrad,dE_MeV,dphase_deg\n"
+                                        "0.4,0.1,0.01,3\n"
+                                        "-0.1,0.3,0.03,-1\n"
+                                        "5,5,5,5\n");
+  s.drift = DriftModel{0, 0, 0};  // the machine as set (a drift revalidates it from its document)
+  s.particles = 2;
+  r = synthesize(m, s);
+  CHECK(r.bunch_mean.particles == 2);
+  CHECK(r.bunch_mean.offset.dr_mm == Approx(0.15));
+  CHECK(r.bunch_mean.offset.dpr_mrad == Approx(0.2));
+  CHECK(r.bunch_mean.offset.dE_MeV == Approx(0.02));
+  CHECK(r.bunch_mean.offset.dphase_deg == Approx(1));
+  // Without profiles no bunch is tracked and truth.json has no bunch_mean.
+  s.profiles = false;
+  s.phases = true;
+  r = synthesize(m, s);
+  CHECK(r.bunch_mean.particles == 0);
+  CHECK_FALSE(truth_json(m, s, r).contains("bunch_mean"));
+}
+
+TEST_CASE("synth: bunch_mean at the reference's time starts on the mean particle's path (ring8)", "[synth]") {
+  const Machine m = load_machine(std::string(TURNFIT_TEST_DIR) + "/../share/turnfit/ring8/machine.json");
+  const TrackModel model = make_track_model(m);
+  TrackSettings st = machine_track_settings(m);
+  st.turns = 12;
+  const Injection inj = effective_injection(m);
+  const double mass = m.particle.mass_MeV;
+  // A mean far beyond a real bunch's (1.5 deg late, 0.3 mm out, 0.2 mrad, 10 keV), so the
+  // first-order move's own error (second order) stays far below what it corrects.
+  const std::vector<BunchOffset> offs = {{0.5, 0.1, 0, 0, 0.02, 2.5}, {0.1, 0.3, 0, 0, 0.0, 0.5}};
+  const BunchMean b = bunch_mean(model, inj, mass, offs);
+  CHECK(b.offset.dphase_deg == Approx(1.5));
+  // -dphase / h on average over a turn; at the injection azimuth the scalloped orbit's local
+  // angular speed differs from its mean by a few per cent.
+  CHECK(b.dphi_deg == Approx(-1.5 / 6).epsilon(0.05));
+
+  auto radii = [&](const Injection& in, const BunchOffset& o) {
+    std::vector<TurnRecord> turns;
+    track_particle(model, offset_state(in, mass, model.rf_MHz, o), st, turns);
+    return turns;
+  };
+  const std::vector<TurnRecord> mean = radii(inj, b.offset);
+  Injection moved = inj;
+  moved.phi_deg += b.dphi_deg;
+  const std::vector<TurnRecord> at = radii(moved, b.at_reference_time);
+  // The azimuth alone, r and p_r/p as at the injection azimuth: off the path.
+  BunchOffset phi_only = b.offset;
+  phi_only.dphase_deg = 0;
+  const std::vector<TurnRecord> only = radii(moved, phi_only);
+  REQUIRE(mean.size() == at.size());
+  REQUIRE(mean.size() == only.size());
+  REQUIRE(mean.size() >= 10);
+  double d_at = 0, d_only = 0, dt_at = 0;
+  for (size_t k = 0; k < mean.size(); ++k) {
+    REQUIRE(mean[k].probe == at[k].probe);
+    REQUIRE(mean[k].turn == at[k].turn);
+    d_at = std::max(d_at, std::fabs(at[k].r_mm - mean[k].r_mm));
+    d_only = std::max(d_only, std::fabs(only[k].r_mm - mean[k].r_mm));
+    dt_at = std::max(dt_at, std::fabs(at[k].t_ns - mean[k].t_ns));
+  }
+  INFO("max |dr| moved along the path " << d_at << " mm, azimuth alone " << d_only << " mm; max |dt| " << dt_at
+                                        << " ns");
+  CHECK(d_only > 0.02);
+  CHECK(d_at < 0.05 * d_only);
+  CHECK(dt_at < 1e-3);  // the same arrival times: the start time is the reference's
+}

@@ -8,6 +8,7 @@
 
 #include "turnfit/io/error.hpp"
 #include "turnfit/io/parallel.hpp"
+#include "turnfit/physics/azimuth_eom.hpp"
 #include "turnfit/physics/particle.hpp"
 #include "turnfit/track/model.hpp"
 
@@ -212,6 +213,56 @@ void apply_drift(Machine& m, const Drift& d) {
   revalidate(m);
 }
 
+BunchMean bunch_mean(const TrackModel& model, const Injection& inj, double mass_MeV,
+                     const std::vector<BunchOffset>& offsets) {
+  BunchMean bm;
+  bm.particles = offsets.size();
+  if (offsets.empty()) return bm;
+  // Summed in order: the same mean for any thread count (offsets do not depend on it).
+  BunchOffset& m = bm.offset;
+  for (const auto& o : offsets) {
+    m.dr_mm += o.dr_mm;
+    m.dpr_mrad += o.dpr_mrad;
+    m.dz_mm += o.dz_mm;
+    m.dpz_mrad += o.dpz_mrad;
+    m.dE_MeV += o.dE_MeV;
+    m.dphase_deg += o.dphase_deg;
+  }
+  const double inv = 1.0 / static_cast<double>(offsets.size());
+  m.dr_mm *= inv;
+  m.dpr_mrad *= inv;
+  m.dz_mm *= inv;
+  m.dpz_mrad *= inv;
+  m.dE_MeV *= inv;
+  m.dphase_deg *= inv;
+  bm.at_reference_time = m;
+  bm.at_reference_time.dphase_deg = 0;
+  if (m.dphase_deg == 0) return bm;
+  // offset_state's conversion: the mean particle starts dt later at the injection azimuth.
+  bm.dt_ns = m.dphase_deg / (360 * model.rf_MHz * 1e6) * 1e9;
+  const ParticleState s = offset_state(inj, mass_MeV, model.rf_MHz, m);
+  // Where the particle was dt earlier on its own path: d(r, p_r/p, z, p_z/p, t)/dphi of the
+  // azimuth tracker (AzRhs in azimuth_integrator.cpp), so dphi = -dt / (dt/dphi); moving
+  // backwards in time is moving backwards in azimuth (the tracker's azimuth grows).
+  const double P = std::sqrt(s.px * s.px + s.py * s.py + s.pz * s.pz), th = std::atan2(s.y, s.x);
+  const double r = std::hypot(s.x, s.y), x = (s.px * std::cos(th) + s.py * std::sin(th)) / P, xz = s.pz / P;
+  const double brho = P * mass_MeV * 1e6 / (kSpeedOfLight * std::fabs(model.charge_e));
+  const double inv_brho = (model.charge_e >= 0 ? 1.0 : -1.0) / brho, inv_v = std::sqrt(1 + P * P) / (P * kSpeedOfLight);
+  FieldSample f;
+  AzimuthDerivs d;
+  if (!model.field(r, th, f) || !azimuth_eom(r, x, s.z, xz, f, inv_brho, inv_v, d) || !(d.dt > 0))
+    throw Error(ExitCode::data, "bunch: the bunch's mean start (r = " + std::to_string(r * 1e3) +
+                                    " mm) is outside the field map or has no azimuthal momentum");
+  const double dphi = -bm.dt_ns * 1e-9 / d.dt;
+  bm.dphi_deg = dphi * 180 / kPi;
+  BunchOffset& a = bm.at_reference_time;
+  a.dr_mm += d.dr * dphi * 1e3;
+  a.dpr_mrad += d.dx * dphi * 1e3;
+  a.dz_mm += d.dz * dphi * 1e3;
+  a.dpz_mrad += d.dxz * dphi * 1e3;
+  return bm;
+}
+
 double silverman_bandwidth(double sigma_mm, std::uint64_t n) {
   if (!(sigma_mm > 0) || n < 2) return 0;
   return 1.06 * sigma_mm * std::pow(static_cast<double>(n), -0.2);
@@ -327,6 +378,7 @@ SynthResult synthesize(const Machine& truth, const SynthSettings& s) {
         throw Error(e.code(), std::string(e.what()) + " (particle " + std::to_string(i) + ")");
       }
     }
+    res.bunch_mean = bunch_mean(model, effective_injection(run), run.particle.mass_MeV, offs);
     // Every particle's crossings, each in its own slot: filled concurrently, read in order.
     struct Hit {
       int probe, turn;

@@ -84,9 +84,32 @@ struct PhaseScan {
   std::vector<double> dsinphi_true;  ///< without phase-probe noise
 };
 
+/// The sample mean of the particles a synthesis tracked, as offsets from the reference particle
+/// (the machine's effective injection): a finite bunch's mean is not the reference, so its
+/// centroids move as an injection error would. The design variables have no start time, so the
+/// mean is also given as the same start moved along its path to the reference's start time (a
+/// bunch that starts late at the injection azimuth is one that starts on time a little behind it).
+struct BunchMean {
+  size_t particles = 0;  ///< how many offsets were averaged (0: no bunch was tracked)
+  BunchOffset offset;    ///< mean of the particles' offsets (bunch_columns' units)
+  double dt_ns = 0;      ///< the mean start-time offset, offset.dphase_deg / (360 f_rf)
+  double dphi_deg = 0;   ///< azimuth of the mean start moved to the reference's start time
+  /// The mean start at azimuth + dphi_deg and the reference's start time: the offsets
+  /// moved by their derivatives along the path (dphase_deg 0; dE_MeV unchanged, no gap between).
+  BunchOffset at_reference_time;
+};
+
+/// The mean of `offsets` about `inj` (as offset_state starts them) in `model`; the move to the
+/// reference's start time is first order in dt: dphi = -dt / (dt/dphi) from the equations of
+/// motion in azimuth (physics/azimuth_eom.hpp), r and p_r/p moved by their derivatives times
+/// dphi. EX_DATAERR when the mean start is not in the field map; a zero mean for no offsets.
+BunchMean bunch_mean(const TrackModel& model, const Injection& inj, double mass_MeV,
+                     const std::vector<BunchOffset>& offsets);
+
 /// What a synthesis produced.
 struct SynthResult {
   Drift drift;
+  BunchMean bunch_mean;  ///< of the particles tracked for the profiles
   std::vector<SynthProfile> profiles;
   std::vector<PhaseScan> phases;
   std::vector<Centroid> centroids;  ///< the true turn positions (bunch means) of this run

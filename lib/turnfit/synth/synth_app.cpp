@@ -116,6 +116,22 @@ nlohmann::json truth_json(const Machine& truth, const SynthSettings& s, const Sy
                 {"dr_mm", r.drift.dr_mm},
                 {"dpr_mrad", r.drift.dpr_mrad},
                 {"dvoltage_rel", r.drift.dvoltage_rel}};
+  if (r.bunch_mean.particles > 0) {
+    // Offsets in bunch_columns' units; at_reference_time: the same start at the reference's time.
+    const BunchMean& b = r.bunch_mean;
+    auto offsets = [](const BunchOffset& o) {
+      return json{{"dr_mm", o.dr_mm}, {"dpr_mrad", o.dpr_mrad}, {"dz_mm", o.dz_mm},
+                  {"dpz_mrad", o.dpz_mrad}, {"dE_MeV", o.dE_MeV}};
+    };
+    json mean = offsets(b.offset);
+    mean["dphase_deg"] = b.offset.dphase_deg;
+    mean["dt_ns"] = b.dt_ns;
+    mean["particles"] = b.particles;
+    json at = offsets(b.at_reference_time);
+    at["dphi_deg"] = b.dphi_deg;
+    mean["at_reference_time"] = at;
+    j["bunch_mean"] = mean;
+  }
   json prof = json::object();
   for (const auto& p : r.profiles)
     prof[p.probe] = {{"baseline_nA", p.baseline_nA}, {"drift_nA", p.drift_nA}, {"scale_nA", p.scale_nA}};
