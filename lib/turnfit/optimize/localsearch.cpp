@@ -323,8 +323,8 @@ std::vector<double> u_of(const std::vector<double>& theta) {
 class TraceCallback final : public ceres::IterationCallback {
  public:
   TraceCallback(const LocalSearchSettings& s, const Residuals& r, int pass, std::function<size_t()> count,
-                std::vector<LocalSearchIteration>& trace)
-      : s_(s), r_(r), pass_(pass), count_(std::move(count)), trace_(trace) {}
+                std::vector<LocalSearchIteration>& trace, std::function<bool()> reweigh = {})
+      : s_(s), r_(r), pass_(pass), count_(std::move(count)), trace_(trace), reweigh_(std::move(reweigh)) {}
   ceres::CallbackReturnType operator()(const ceres::IterationSummary& it) override {
     LocalSearchIteration t;
     t.pass = pass_;
@@ -345,6 +345,8 @@ class TraceCallback final : public ceres::IterationCallback {
     // hundredths), so this never stops a fit that is still moving; stopping on the small gain
     // of a cycle instead left vchange 13 of its sigmas along such a valley (blind case truth1).
     if (s_.decrement_tolerance > 0 && t.decrement < s_.decrement_tolerance) return ceres::SOLVER_TERMINATE_SUCCESSFULLY;
+    // This pass's weights are already known to be off (see local_search): end it here.
+    if (std::isfinite(t.decrement) && reweigh_ && reweigh_()) return ceres::SOLVER_TERMINATE_SUCCESSFULLY;
     return ceres::SOLVER_CONTINUE;
   }
 
@@ -354,11 +356,13 @@ class TraceCallback final : public ceres::IterationCallback {
   int pass_;
   std::function<size_t()> count_;
   std::vector<LocalSearchIteration>& trace_;
+  std::function<bool()> reweigh_;
 };
 
 /// One Levenberg-Marquardt pass from theta (updated in place).
 ceres::Solver::Summary lm_pass(const Residuals& res, std::vector<double>& theta, const LocalSearchSettings& s, int pass,
-                               const std::function<size_t()>& count, std::vector<LocalSearchIteration>& trace) {
+                               const std::function<size_t()>& count, std::vector<LocalSearchIteration>& trace,
+                               const std::function<bool()>& reweigh = {}) {
   ceres::Problem problem;
   problem.AddResidualBlock(new TurnCost(res), nullptr, theta.data());
   ceres::Solver::Options o;
@@ -375,7 +379,7 @@ ceres::Solver::Summary lm_pass(const Residuals& res, std::vector<double>& theta,
   o.logging_type = ceres::SILENT;
   o.minimizer_progress_to_stdout = false;
   o.num_threads = 1;  // the cost function runs its own evaluations in parallel
-  TraceCallback cb(s, res, pass, count, trace);
+  TraceCallback cb(s, res, pass, count, trace, reweigh);
   o.callbacks.push_back(&cb);
   ceres::Solver::Summary summary;
   ceres::Solve(o, &problem, &summary);
@@ -800,8 +804,8 @@ LocalSearchResult local_search(TurnPatternProblem& p, const std::vector<double>&
   // scatter per probe with chi2 per degree of freedom 1 (when the problem gives no sigma), from
   // the converged residuals, with dof = N_p - n N_p / N; a pass with them; again while the shift
   // moves by more than a tenth of the smallest sigma or a turn's sigma by more than 10 % (a
-  // first pass far from the optimum over-estimates it), at most 4 passes in all.
-  for (int pass = 2; pass <= 4 && (estimate || !p.bunch_nodes().empty()); ++pass) {
+  // first pass far from the optimum over-estimates it), at most 5 passes in all.
+  for (int pass = 2; pass <= 5 && (estimate || !p.bunch_nodes().empty()); ++pass) {
     u = u_of(theta);
     const double shift_change = update_centroid(res.x_of(u.data()));
     const bool shift_moved = shift_change > 0.1 * *std::min_element(sigma.begin(), sigma.end());
@@ -880,7 +884,30 @@ LocalSearchResult local_search(TurnPatternProblem& p, const std::vector<double>&
             std::max(out.kept_jacobian_difference, (fresh - res.jac).cwiseAbs().maxCoeff() / scale);
       }
     }
-    sum = lm_pass(res, theta, s, pass, count, out.trace);
+    // A pass whose weights came from an earlier pass's residuals ends as soon as some probe's chi2
+    // per degree of freedom falls below 0.81 at a fresh Jacobian: chi2 only falls within a pass,
+    // so its sigma will come out more than 10 % smaller and the next pass is certain; crawling on
+    // to this pass's optimum under weights about to change cost blind case truths 400-700 designs.
+    const std::function<bool()> reweigh = [&]() {
+      if (!estimate) return false;
+      std::lock_guard<std::mutex> lock(res.mu);
+      if (res.kept.res.size() != res.nres) return false;
+      size_t nmatched = 0;
+      for (size_t i = 0; i < nmeas; ++i) nmatched += res.kept.matched[i];
+      for (size_t q = 0; q < meas.probes.size(); ++q) {
+        auto [b, e] = meas.probe_range(static_cast<int>(q));
+        double chi2 = 0, np = 0;
+        for (size_t i = b; i < e; ++i)
+          if (res.kept.matched[i]) {
+            chi2 += res.kept.res[i] * res.kept.res[i];
+            np += 1;
+          }
+        const double dof = np - static_cast<double>(n) * np / static_cast<double>(std::max<size_t>(nmatched, 1));
+        if (dof > 0.5 && chi2 / dof < 0.81) return true;
+      }
+      return false;
+    };
+    sum = lm_pass(res, theta, s, pass, count, out.trace, reweigh);
     out.iterations += static_cast<int>(sum.iterations.size());
     settle(sum, pass);
     out.sigma_passes = pass;

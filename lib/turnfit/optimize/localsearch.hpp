@@ -70,7 +70,7 @@ struct LocalSearchSettings {
 /// One Levenberg-Marquardt iteration (Ceres' iteration summary and the design it stands on),
 /// for the report's trace: how many evaluations a given RMS took, and where they went.
 struct LocalSearchIteration {
-  int pass = 1;             ///< sigma pass (1-4)
+  int pass = 1;             ///< sigma pass (1-5)
   int iteration = 0;        ///< Ceres' iteration in the pass (0: the pass's start)
   size_t evaluations = 0;   ///< designs simulated so far, all passes (the start's and this design's Jacobian included)
   double cost = 0;          ///< Ceres' cost, chi2 / 2 with this pass's sigma, priors included
@@ -182,14 +182,14 @@ FitSummary summarize(const TurnPatternResult& r, const std::vector<double>& sigm
 /// uncertainty (the peaks file's r_err_mm, which turnfit-peakfind makes large for merged and
 /// other doubtful peaks; 0 without the column) and s_p a per-turn scatter per probe, in a first
 /// pass the wire step / sqrt(12) (the readout's resolution), then estimated from the converged
-/// residuals (chi2 per degree of freedom 1); a second pass fits with it, and again (at most 4
+/// residuals (chi2 per degree of freedom 1); a second pass fits with it, and again (at most 5
 /// passes) while a sigma moves by more than 10 %.
 /// Then, with settings.minimax, the minimax polish: from the least-squares result, steps that
 /// minimize the largest |residual| [mm] of the model linearized by the Jacobian (Lawson's
 /// iteratively reweighted least squares, with a ridge toward the current design that acts as a
 /// trust region), each kept by the paper's rule (see LocalSearchSettings::minimax).
 /// In the problem's "centroid" mode the centroid shift is recomputed at x0 and before each
-/// pass, and passes go on (at most 4 in all) while it moves by more than a tenth of the
+/// pass, and passes go on (at most 5 in all) while it moves by more than a tenth of the
 /// smallest sigma; the problem keeps the last one.
 /// EX_DATAERR if x0 cannot be simulated; EX_USAGE if x0 lies outside the bounds.
 LocalSearchResult local_search(TurnPatternProblem& p, const std::vector<double>& x0,
