@@ -220,21 +220,8 @@ BunchMean bunch_mean(const TrackModel& model, const Injection& inj, double mass_
   if (offsets.empty()) return bm;
   // Summed in order: the same mean for any thread count (offsets do not depend on it).
   BunchOffset& m = bm.offset;
-  for (const auto& o : offsets) {
-    m.dr_mm += o.dr_mm;
-    m.dpr_mrad += o.dpr_mrad;
-    m.dz_mm += o.dz_mm;
-    m.dpz_mrad += o.dpz_mrad;
-    m.dE_MeV += o.dE_MeV;
-    m.dphase_deg += o.dphase_deg;
-  }
-  const double inv = 1.0 / static_cast<double>(offsets.size());
-  m.dr_mm *= inv;
-  m.dpr_mrad *= inv;
-  m.dz_mm *= inv;
-  m.dpz_mrad *= inv;
-  m.dE_MeV *= inv;
-  m.dphase_deg *= inv;
+  for (const auto& o : offsets) m += o;
+  m = scaled(m, 1.0 / static_cast<double>(offsets.size()));
   bm.at_reference_time = m;
   bm.at_reference_time.dphase_deg = 0;
   if (m.dphase_deg == 0) return bm;

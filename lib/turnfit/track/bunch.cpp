@@ -125,6 +125,20 @@ void merge_into(Partial& dst, Partial& src) {
 
 }  // namespace
 
+BunchOffset& operator+=(BunchOffset& a, const BunchOffset& b) {
+  a.dr_mm += b.dr_mm;
+  a.dpr_mrad += b.dpr_mrad;
+  a.dz_mm += b.dz_mm;
+  a.dpz_mrad += b.dpz_mrad;
+  a.dE_MeV += b.dE_MeV;
+  a.dphase_deg += b.dphase_deg;
+  return a;
+}
+
+BunchOffset scaled(const BunchOffset& d, double f) {
+  return {f * d.dr_mm, f * d.dpr_mrad, f * d.dz_mm, f * d.dpz_mrad, f * d.dE_MeV, f * d.dphase_deg};
+}
+
 std::vector<ProbeHistogram> empty_histograms(const TrackModel& m) {
   std::vector<ProbeHistogram> h(m.probes.size());
   for (size_t p = 0; p < m.probes.size(); ++p) {
@@ -196,20 +210,6 @@ void truncated_moments(double c, double& m2, double& m4) {
   }
   m2 = s2 / s0;
   m4 = s4 / s0;
-}
-
-BunchOffset& operator+=(BunchOffset& a, const BunchOffset& b) {
-  a.dr_mm += b.dr_mm;
-  a.dpr_mrad += b.dpr_mrad;
-  a.dz_mm += b.dz_mm;
-  a.dpz_mrad += b.dpz_mrad;
-  a.dE_MeV += b.dE_MeV;
-  a.dphase_deg += b.dphase_deg;
-  return a;
-}
-
-BunchOffset scaled(const BunchOffset& d, double f) {
-  return {f * d.dr_mm, f * d.dpr_mrad, f * d.dz_mm, f * d.dpz_mrad, f * d.dE_MeV, f * d.dphase_deg};
 }
 
 /// The mean over centre + sum_k u_k dirs[k], u_k independent and symmetric with E[u^2] = m2,

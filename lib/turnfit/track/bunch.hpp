@@ -22,6 +22,10 @@ struct BunchOffset {
   double dphase_deg = 0;  ///< RF phase: positive starts later (dt = dphase / (360 f_rf))
 };
 
+/// Offsets added coordinate by coordinate, and scaled by f.
+BunchOffset& operator+=(BunchOffset& a, const BunchOffset& b);
+BunchOffset scaled(const BunchOffset& d, double f);
+
 /// The columns a bunch file may have (any subset, at least one; absent columns are 0).
 const std::vector<std::string>& bunch_columns();
 
