@@ -146,6 +146,7 @@ struct LocalSearchResult {
   size_t failed_evaluations = 0;      ///< designs that could not be simulated (penalized)
   double wall_s = 0, cpu_s = 0;       ///< time taken (CPU: every thread of the process)
   std::vector<LocalSearchIteration> trace;  ///< every Levenberg-Marquardt iteration, all passes
+  size_t minimax_held = 0;            ///< turns the polish held: outliers and doubtful peaks (sigma > 3 x the probe's median)
   int kept_jacobians = 0;             ///< passes and pass-1 stages that began from the last one's Jacobian, reweighted
   size_t frozen_steps = 0;            ///< steps taken on a frozen Jacobian (settings.frozen_steps)
   /// With settings.check_kept_jacobian: the largest |kept - fresh| entry over the largest |fresh|.

@@ -272,6 +272,7 @@ nlohmann::json localsearch_report(const TurnPatternProblem& p, const LocalSearch
     mm["steps"] = r.minimax_steps;
     mm["evaluations"] = r.minimax_evaluations;
     mm["termination"] = r.minimax_termination;
+    mm["held"] = r.minimax_held;
     mm["tolerance_mm"] = tolerance_mm;
     mm["x"] = design_json(p, r.x_minimax);
     j["minimax"] = mm;
