@@ -888,8 +888,9 @@ LocalSearchResult local_search(TurnPatternProblem& p, const std::vector<double>&
     // per degree of freedom falls below 0.81 at a fresh Jacobian: chi2 only falls within a pass,
     // so its sigma will come out more than 10 % smaller and the next pass is certain; crawling on
     // to this pass's optimum under weights about to change cost blind case truths 400-700 designs.
+    // Never in the last pass allowed: nothing would follow it.
     const std::function<bool()> reweigh = [&]() {
-      if (!estimate) return false;
+      if (!estimate || pass >= 5) return false;
       std::lock_guard<std::mutex> lock(res.mu);
       if (res.kept.res.size() != res.nres) return false;
       size_t nmatched = 0;
