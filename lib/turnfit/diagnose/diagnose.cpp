@@ -354,6 +354,8 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
   MatrixXd atom_cols;  // data rows x atoms, at the current state
 
   for (int round = 1;; ++round) {
+    const size_t evaluations_at_round = evaluations;
+    const auto t_round = std::chrono::steady_clock::now();
     L = linearize(st, e_state);
     const size_t nd = L.data;
     const Base base = base_of(L.J, L.z);
@@ -538,15 +540,33 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
         j["limit_without_variables"] = alone > 0 ? jnum(std::sqrt(T / alone)) : json(nullptr);
       }
       j["status"] = passes ? "candidate" : (row.sc.visible < 0.05 ? "absorbed" : "not-seen");
-      cand_report[c.label] = j;
+      // The row of the first screen (at the base fit) stays: its scores and detection limit are
+      // "after the design variables"; a later round adds its own screen and sets the status
+      // (a candidate another effect has since explained is not-seen there).
+      auto it = cand_report.find(c.label);
+      if (it == cand_report.end()) {
+        cand_report[c.label] = j;
+      } else {
+        it->second["last_round"] = {{"round", round},
+                                    {"delta_chi2", j["delta_chi2"]},
+                                    {"held_out_gain", j["held_out_gain"]},
+                                    {"status", j["status"]}};
+        const std::string was = it->second["status"];
+        if (was != "selected" && was != "selected-ambiguous" && was != "ambiguous") it->second["status"] = j["status"];
+      }
     }
 
+    json round_rep = {{"round", round},
+                      {"screen_evaluations", evaluations - evaluations_at_round},
+                      {"screen_wall_s", std::chrono::duration<double>(std::chrono::steady_clock::now() - t_round).count()},
+                      {"refits", json::array()}};
     // Nothing-missing: the residual is consistent with noise (no located shape, no significant
     // chi2) and no catalogue signature passes even in the linear screen.
     bool any_pass = false;
     for (const auto& row : screened) any_pass = any_pass || (row.sc.dchi2 > threshold(k_of(*row.c)) && row.held > 0);
     if (round == 1 && !out.located_before.significant && !any_pass) {
       log("the residual is consistent with noise and no candidate passes: nothing missing");
+      out.rounds.push_back(round_rep);
       break;
     }
 
@@ -564,7 +584,10 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
       for (const Row* q : picks) dup = dup || same_effect(*q->c, *r->c);
       if (!dup) picks.push_back(r);
     }
-    if (picks.empty()) break;
+    if (picks.empty()) {
+      out.rounds.push_back(round_rep);
+      break;
+    }
     const double chi2_now = chi2_of(st, nullptr, nullptr);
     struct Refit {
       const Row* row;
@@ -574,7 +597,7 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
       LocalSearchResult r;
     };
     std::vector<Refit> refits;
-    json round_rep = {{"round", round}, {"chi2", chi2_now}, {"refits", json::array()}};
+    round_rep["chi2"] = chi2_now;
     for (const Row* row : picks) {
       const Candidate& c = *row->c;
       Refit rf;
@@ -625,6 +648,7 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
       shift_x.resize(x.size());
       for (size_t q = st.x.size(); q < x.size(); ++q) shift_x[q] = x[q];
       rf.state.prob = st.prob->with_machine(std::move(v), nv, shift_x, true);
+      const auto t_refit = std::chrono::steady_clock::now();
       rf.state.n_problem = st.n_problem;
       try {
         rf.r = local_search(*rf.state.prob, x, rs);
@@ -645,6 +669,7 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
                                      {"linear_delta_chi2", row->sc.dchi2},
                                      {"held_out_gain", row->held},
                                      {"evaluations", rf.r.evaluations},
+                                     {"wall_s", std::chrono::duration<double>(std::chrono::steady_clock::now() - t_refit).count()},
                                      {"jacobians", rf.r.jacobians},
                                      {"iterations", rf.r.iterations},
                                      {"passes", rf.r.sigma_passes},

@@ -120,6 +120,7 @@ json diagnosis_report(const TurnPatternProblem& p, const Diagnosis& d, const std
   j["noise"] = {{"probes", noise}, {"outliers", outliers}};
   // The base fit: localsearch's least squares with its own sigma, then refitted with the noise.
   json base = {{"evaluations", d.base_fit.evaluations},
+               {"wall_s", d.base_fit.wall_s},
                {"chi2_dof_localsearch", jnum(d.base_fit.chi2_dof)},
                {"linf_mm", jnum(d.base_fit.after.linf_mm)},
                {"rms_mm", jnum(d.base_fit.after.rms_mm)},
