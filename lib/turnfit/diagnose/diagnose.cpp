@@ -356,6 +356,24 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
   for (int round = 1;; ++round) {
     const size_t evaluations_at_round = evaluations;
     const auto t_round = std::chrono::steady_clock::now();
+    if (round > 1) {
+      // The noise again, from the residual the effects found so far leave: missing physics
+      // that varies from turn to turn (a betatron oscillation it drives) raised the first
+      // estimate. Within a round every score uses one noise; chi2 before and after are
+      // reported with the last.
+      std::vector<unsigned char> m;
+      const std::vector<double> ev = residual(*st.prob, st.x, m);
+      ++evaluations;
+      NoiseEstimate ne = estimate_noise(meas, ev, m);
+      for (size_t i = 0; i < N; ++i) ne.outlier[i] = ne.outlier[i] || out.noise.outlier[i];
+      out.noise = std::move(ne);
+      rows.sigma = out.noise.sigma_mm;
+      sigma_fit = out.noise.sigma_mm;
+      for (size_t i = 0; i < N; ++i)
+        if (out.noise.outlier[i]) sigma_fit[i] *= 1e3;
+      st.prob->set_sigma_mm(sigma_fit);
+    }
+    out.noise_rounds.push_back(out.noise.scatter_mm);
     L = linearize(st, e_state);
     const size_t nd = L.data;
     const Base base = base_of(L.J, L.z);
@@ -771,6 +789,18 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
 
   // The final state.
   out.x_after.assign(st.x.begin(), st.x.begin() + static_cast<long>(st.n_problem));
+  // "before" with the final noise, so that before and after compare on one scale (its dof and
+  // held-out figure stay those of round 1).
+  {
+    double c2 = 0;
+    size_t n_used = 0;
+    for (size_t i = 0; i < N; ++i)
+      if (!std::isnan(out.residual_before_mm[i]) && !out.noise.outlier[i])
+        c2 += std::pow(out.residual_before_mm[i] / rows.sigma[i], 2), ++n_used;
+    out.before_first_noise_chi2 = out.before.chi2;
+    out.before.chi2 = c2;
+    out.before.chi2_per_dof = c2 / out.before.dof;
+  }
   out.residual_after_mm = used_residual(e_state);
   out.located_after = locate(meas, e_state, used_flags(e_state), out.noise, tunes, out.after.dof, s.margin);
   for (const auto& sel : selected) out.signatures_mm.push_back(sel.signature_mm);
