@@ -385,13 +385,15 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
       for (Index r = static_cast<Index>(nd); r < L.z.size(); ++r) train[static_cast<size_t>(f)].push_back(r);
     }
     std::vector<Base> fold_base;
-    double held_base = 0;
+    double held_base = 0, held_mm2 = 0;
     for (int f = 0; f < K; ++f) {
       const auto& tr = train[static_cast<size_t>(f)];
       const auto& te = test[static_cast<size_t>(f)];
       fold_base.push_back(base_of(L.J(tr, Eigen::all), L.z(tr)));
       const VectorXd delta = -fold_base.back().R.triangularView<Eigen::Upper>().solve(fold_base.back().Qtz);
-      held_base += (L.z(te) + L.J(te, Eigen::all) * delta).squaredNorm();
+      const VectorXd pred = L.z(te) + L.J(te, Eigen::all) * delta;
+      held_base += pred.squaredNorm();
+      for (Index q = 0; q < pred.size(); ++q) held_mm2 += std::pow(pred[q] * rows.sigma[rows.point[static_cast<size_t>(te[static_cast<size_t>(q)])]], 2);
     }
     // Effective degrees of freedom: data rows less the trace of the data part of the hat matrix.
     const double hat = base.Q.topRows(static_cast<Index>(nd)).squaredNorm();
@@ -403,7 +405,8 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
         c2 += std::pow(d / rows.sigma[rows.point[r]], 2), ss += d * d, linf = std::max(linf, std::fabs(d));
       }
       out.after = {linf, std::sqrt(ss / static_cast<double>(nd)), c2, c2 / (static_cast<double>(nd) - hat),
-                   static_cast<double>(nd) - hat, held_base / static_cast<double>(nd), nd};
+                   static_cast<double>(nd) - hat, held_base / static_cast<double>(nd), nd,
+                   std::sqrt(held_mm2 / static_cast<double>(nd))};
     }
     if (round == 1) {
       out.before = out.after;
