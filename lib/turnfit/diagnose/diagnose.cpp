@@ -172,7 +172,7 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
   LocalSearchSettings rs = fs;
   // Refits start at the linearized joint optimum: a few iterations reach the valley floor, and
   // an unfinished one only understates an effect's gain.
-  rs.max_iterations = std::min(rs.max_iterations, 12);
+  rs.max_iterations = std::min(rs.max_iterations, 20);
   rs.progress = nullptr;
   log("base fit of " + std::to_string(p.variables().size()) + " design variables with that noise");
   out.base_fit = local_search(*st.prob, x_start, fs);
@@ -602,11 +602,22 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
       return a->sc.dchi2 - k_of(*a->c) * logN > b->sc.dchi2 - k_of(*b->c) * logN;
     });
     std::vector<const Row*> picks;
+    // At most refits - 1 of one type while another type is waiting: a large effect's linear
+    // screen understates it (sector-strength of -5e-4 screened at half of what a bump's grid
+    // reached, on a blind tuning case), so the best of another type gets its refit too.
+    std::map<std::string, int> per_type;
     for (const Row* r : order) {
       if (static_cast<int>(picks.size()) >= s.refits) break;
       bool dup = false;
       for (const Row* q : picks) dup = dup || same_effect(*q->c, *r->c);
-      if (!dup) picks.push_back(r);
+      if (dup) continue;
+      if (s.refits > 1 && per_type[r->c->type] >= s.refits - 1) {
+        bool other = false;
+        for (const Row* q : order) other = other || (q->c->type != r->c->type);
+        if (other) continue;
+      }
+      picks.push_back(r);
+      ++per_type[r->c->type];
     }
     if (picks.empty()) {
       out.rounds.push_back(round_rep);
@@ -719,7 +730,35 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
         competitors.push_back({{"label", rf.row->c->label},
                                {"type", rf.row->c->type},
                                {"instance", rf.row->c->instance},
-                               {"delta_bic", rf.dbic}});
+                               {"delta_bic", rf.dbic},
+                               {"from", "refit"}});
+    // And candidates the linear screen cannot tell from the selected one (their screened
+    // Delta BIC within the ambiguity of its own): a refit that stopped short of its valley
+    // floor must not decide between signatures the data do not separate (four cavities' voltage
+    // tilts, on a blind tuning case, screened within 2 of each other and refitted 46-131).
+    {
+      const Row* sel_row = best->row;
+      const double sel_lin = sel_row->sc.dchi2 - k_of(*sel_row->c) * logN;
+      for (const auto& row : screened) {
+        if (&row == sel_row || same_effect(*row.c, *sel_row->c)) continue;
+        const double lin = row.sc.dchi2 - k_of(*row.c) * logN;
+        if (!(row.sc.dchi2 > threshold(k_of(*row.c)) && row.held > 0 && sel_lin - lin < s.ambiguity)) continue;
+        bool have = false;
+        for (const auto& c : competitors) have = have || c["label"] == row.c->label;
+        for (const auto& c : competitors) {  // one entry per distinct effect
+          const Candidate* other = nullptr;
+          for (const auto& r2 : screened)
+            if (r2.c->label == c["label"]) other = r2.c;
+          have = have || (other && same_effect(*other, *row.c));
+        }
+        if (!have)
+          competitors.push_back({{"label", row.c->label},
+                                 {"type", row.c->type},
+                                 {"instance", row.c->instance},
+                                 {"delta_bic", lin},
+                                 {"from", "screen"}});
+      }
+    }
     round_rep["chosen"] = best->row->c->label;
     out.rounds.push_back(round_rep);
     cand_report[best->row->c->label]["status"] = competitors.empty() ? "selected" : "selected-ambiguous";
