@@ -1,9 +1,9 @@
 // turnfit-synth: synthetic probe profiles, trim coil phase scans and the hidden truth of a run.
 #include "turnfit/synth/synth_app.hpp"
 
+#include <algorithm>
 #include <cmath>
 #include <cstdio>
-#include <algorithm>
 #include <filesystem>
 #include <map>
 #include <memory>
