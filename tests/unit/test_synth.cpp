@@ -8,6 +8,7 @@
 #include <fstream>
 #include <map>
 #include <numeric>
+#include <sstream>
 
 #include "../support.hpp"
 #include "turnfit/io/json.hpp"
@@ -688,4 +689,373 @@ TEST_CASE("synth: bunch_mean at the reference's time starts on the mean particle
   CHECK(d_only > 0.02);
   CHECK(d_at < 0.05 * d_only);
   CHECK(dt_at < 1e-3);  // the same arrival times: the start time is the reference's
+}
+
+// ---- Scan errors (issue 16): the per-turn error model of a wire scan ----
+
+namespace {
+
+/// A single turn: the whole beam in one crossing at r0 of width h, read on a grid of `step`
+/// over r0 +- 15 mm (12 widths and more for h <= 1.25 mm), a thin wire.
+SynthProfile single_turn(double r0, double step, WireModel& w) {
+  w.wire_mm = 1e-3;
+  SynthProfile p;
+  p.step_mm = step;
+  for (double x = r0 - 15; x <= r0 + 15 + 1e-9; x += step) p.position_mm.push_back(x);
+  return p;
+}
+
+/// Centroid of the noiseless signal over the whole profile.
+double signal_centroid(const SynthProfile& p) {
+  double s = 0, sx = 0;
+  for (size_t k = 0; k < p.signal_nA.size(); ++k) {
+    s += p.signal_nA[k];
+    sx += p.signal_nA[k] * p.position_mm[k];
+  }
+  return sx / s;
+}
+
+}  // namespace
+
+TEST_CASE("synth: without scan errors the profile is today's (regression)", "[synth][regression]") {
+  // Guards the promise that --scan-errors none (the default) leaves every output as it was: the
+  // figures were printed by the library before the scan-error model existed (commit bda7adb, the
+  // iso machine, 10 turns, 64 particles, seed 11), 17 digits. Bounds: 1e-9 relative, room for
+  // another CPU's last bits; a scan error of even 1e-3 mm moves the sums by far more.
+  Machine m = iso_machine();
+  SynthSettings s;
+  s.track = machine_track_settings(m, "");
+  s.track.turns = 10;
+  s.particles = 64;
+  s.threads = 1;
+  s.phases = false;
+  s.seed = 11;
+  REQUIRE_FALSE(s.scan.active());
+  const SynthResult r = synthesize(m, s);
+  const SynthProfile& p = r.profiles.at(0);
+  CHECK(p.intensity.size() == 1600);
+  CHECK(p.scale_nA == Approx(634.13294087884674).epsilon(1e-9));
+  CHECK(p.drift_nA == Approx(-0.21668534099313205).epsilon(1e-9));
+  double sum = 0, sx = 0;
+  for (size_t k = 0; k < p.intensity.size(); ++k) {
+    sum += p.intensity[k];
+    sx += p.intensity[k] * p.position_mm[k];
+  }
+  CHECK(sum == Approx(96.392283919810808).epsilon(1e-9));
+  CHECK(sx == Approx(226694.16007253301).epsilon(1e-9));
+  CHECK(p.signal_nA[777] == Approx(1.0569817493009948).epsilon(1e-9));
+  CHECK(p.intensity[777] == Approx(0.0067532082181689171).epsilon(1e-9));
+  CHECK(p.scan.drive_mm.empty());
+  CHECK(p.scan.readout_mm.empty());
+  CHECK(p.scan.intensity_factor.empty());
+}
+
+TEST_CASE("synth: scan errors off are no errors at all", "[synth]") {
+  // A model whose every rms is 0 draws nothing, whatever its correlation lengths; no errors
+  // applied give wire_signal's numbers exactly; the "none" preset is the drift of today.
+  ScanErrorModel off;
+  off.intensity_corr_mm = 77;
+  off.drive_corr_mm = 3;
+  CHECK_FALSE(off.active());
+  std::vector<double> x;
+  for (int k = 0; k < 50; ++k) x.push_back(0.5 * k);
+  const ScanErrors e = draw_scan_errors(off, x, 3, 0);
+  CHECK(e.drive_mm.empty());
+  CHECK(e.readout_mm.empty());
+  CHECK(e.intensity_factor.empty());
+  WireModel w;
+  SynthProfile p;
+  p.position_mm = x;
+  apply_scan_errors(p, {10.2, 13.0}, {1.1, 0.9}, 2, w, e);
+  CHECK(p.signal_nA == wire_signal(x, {10.2, 13.0}, {1.1, 0.9}, 2, w));
+  const SynthPreset none = synth_preset("none");
+  CHECK_FALSE(none.scan.active());
+  CHECK(none.drift.r_mm == DriftModel{}.r_mm);
+  CHECK(none.drift.pr_mrad == DriftModel{}.pr_mrad);
+  CHECK(none.drift.voltage_rel == DriftModel{}.voltage_rel);
+  // The whole synthesis: an inactive model with other correlation lengths, the same bytes.
+  Machine m = iso_machine();
+  SynthSettings s = quick_settings(8, 40);
+  s.phases = false;
+  const SynthResult a = synthesize(m, s);
+  s.scan = off;
+  const SynthResult b = synthesize(m, s);
+  CHECK(a.profiles.at(0).intensity == b.profiles.at(0).intensity);
+}
+
+TEST_CASE("synth: the Ornstein-Uhlenbeck process has its rms and correlation length", "[synth]") {
+  // Exponential covariance rms^2 exp(-|dx|/corr): 200000 samples every 0.5 mm of a process with
+  // a 5 mm correlation length hold about n / (2 corr / step) = 10000 independent values, so the
+  // rms has a relative standard error near 1/sqrt(2 * 10000) = 0.7% (0.04 is 5.6 of them) and a
+  // correlation coefficient one of about 1/sqrt(10000) = 0.01 (0.04 is 4 of them).
+  const size_t n = 200000;
+  const std::vector<double> v = ou_process(n, 0.5, 0.3, 5, 42, 9);
+  double ss = 0, m = 0;
+  for (double x : v) {
+    ss += x * x;
+    m += x;
+  }
+  const double var = ss / n;
+  CHECK(std::sqrt(var) == Approx(0.3).epsilon(0.04));
+  CHECK(std::fabs(m / n) < 0.3 * 0.04);
+  auto corr = [&](size_t lag) {
+    double c = 0;
+    for (size_t k = lag; k < n; ++k) c += v[k] * v[k - lag];
+    return c / static_cast<double>(n - lag) / var;
+  };
+  CHECK(corr(1) == Approx(std::exp(-0.1)).margin(0.04));
+  CHECK(corr(10) == Approx(std::exp(-1.0)).margin(0.04));  // one correlation length
+  CHECK(corr(40) == Approx(std::exp(-4.0)).margin(0.04));
+  // Correlation length 0: independent values (the readout jitter).
+  const std::vector<double> white = ou_process(n, 0.5, 1.0, 0, 42, 9);
+  double c1 = 0, sw = 0;
+  for (size_t k = 1; k < n; ++k) c1 += white[k] * white[k - 1];
+  for (double x : white) sw += x * x;
+  CHECK(std::sqrt(sw / n) == Approx(1.0).epsilon(0.02));  // 1/sqrt(2n) = 0.16%: 12 standard errors
+  CHECK(std::fabs(c1 / sw) < 0.01);                       // standard error 1/sqrt(n) = 0.0022
+  // The same address, the same numbers; another stream, others.
+  CHECK(ou_process(100, 0.5, 0.3, 5, 42, 9) == std::vector<double>(v.begin(), v.begin() + 100));
+  CHECK(ou_process(100, 0.5, 0.3, 5, 42, 10) != std::vector<double>(v.begin(), v.begin() + 100));
+}
+
+TEST_CASE("synth: a beam-current gradient moves a turn's centroid by sigma^2 d ln I/dx", "[synth]") {
+  // The signal of one Gaussian turn of rms s times a linear current 1 + g (x - r0): its centroid
+  // is r0 + g s^2 exactly (the first moment of x G(x) g (x - r0) over the zeroth), s^2 = h^2 +
+  // w^2/12 for a wire of width w. On a 0.25 mm grid over +-15 mm the sums are the integrals to
+  // far below 1e-9 (Gaussian sums converge as exp(-2 pi^2 s^2 / step^2)).
+  WireModel w;
+  SynthProfile p = single_turn(3000, 0.25, w);
+  const double h = 1.2, g = 0.04, s2 = h * h + w.wire_mm * w.wire_mm / 12;
+  ScanErrors e;
+  for (double x : p.position_mm) e.intensity_factor.push_back(1 + g * (x - 3000));
+  apply_scan_errors(p, {3000}, {h}, 1, w, e);
+  CHECK(signal_centroid(p) - 3000 == Approx(g * s2).epsilon(1e-6));
+  CHECK(p.scan.intensity_factor == e.intensity_factor);
+  // The signal is the current's share: doubled current, doubled reading, reading by reading.
+  SynthProfile q = single_turn(3000, 0.25, w);
+  q.signal_nA = wire_signal(q.position_mm, {3000}, {h}, 1, w);
+  for (size_t k = 0; k < p.signal_nA.size(); ++k) REQUIRE(p.signal_nA[k] == Approx(q.signal_nA[k] * e.intensity_factor[k]));
+  // A random fluctuation: f has the model's rms over a long scan (as ou_process above), and the
+  // current never goes negative.
+  ScanErrorModel sm;
+  sm.intensity_rel = 0.05;
+  sm.intensity_corr_mm = 5;
+  std::vector<double> x;
+  for (int k = 0; k < 100000; ++k) x.push_back(0.5 * k);
+  const ScanErrors r = draw_scan_errors(sm, x, 8, 1);
+  REQUIRE(r.intensity_factor.size() == x.size());
+  CHECK(r.drive_mm.empty());
+  CHECK(r.readout_mm.empty());
+  double ss = 0;
+  for (double f : r.intensity_factor) ss += (f - 1) * (f - 1);
+  CHECK(std::sqrt(ss / x.size()) == Approx(0.05).epsilon(0.06));  // ~5000 independent values: 1% standard error
+  CHECK(*std::min_element(r.intensity_factor.begin(), r.intensity_factor.end()) > 0);
+}
+
+TEST_CASE("synth: a probe drive error moves the turns to where the wire really was", "[synth]") {
+  // The wire recorded at x is at x + D(x): a turn at r appears where x + D(x) = r. A constant D
+  // moves it by -D; a linear D = c + s (x - r0) puts it at r0 - c / (1 + s) (the signal in x is
+  // the turn's Gaussian in (1 + s)(x - r0) + c, still symmetric about that point).
+  WireModel w;
+  SynthProfile p = single_turn(2500, 0.25, w);
+  ScanErrors e;
+  e.drive_mm.assign(p.position_mm.size(), 0.4);
+  apply_scan_errors(p, {2500}, {1.0}, 1, w, e);
+  CHECK(signal_centroid(p) - 2500 == Approx(-0.4).epsilon(1e-7));
+  const double c = 0.3, sl = 0.02;
+  e.drive_mm.clear();
+  for (double x : p.position_mm) e.drive_mm.push_back(c + sl * (x - 2500));
+  apply_scan_errors(p, {2500}, {1.0}, 1, w, e);
+  CHECK(signal_centroid(p) - 2500 == Approx(-c / (1 + sl)).epsilon(1e-7));
+  // Drive and readout errors add: the wire is at x + drive + readout.
+  e.drive_mm.assign(p.position_mm.size(), 0.25);
+  e.readout_mm.assign(p.position_mm.size(), -0.1);
+  apply_scan_errors(p, {2500}, {1.0}, 1, w, e);
+  CHECK(signal_centroid(p) - 2500 == Approx(-0.15).epsilon(1e-7));
+
+  // In a synthesis: a drive error far longer than a turn is wide moves each turn's peak by minus
+  // its value there (truth.json's drive_mm), with everything else the same (the same bunch,
+  // baseline: the peaks of the run without it are the reference; no wire noise, which stays put
+  // while the signal moves). Tolerance 0.01 mm: over a peak's +-10 mm the drive changes by
+  // 0.3 sqrt(2 * 10 / 1e5) = 0.004 mm rms; the rest is the centroid window's grid position.
+  Machine m = iso_machine();
+  SynthSettings s = quick_settings(12, 200);
+  s.phases = false;
+  s.drift = DriftModel{0, 0, 0};
+  s.wire.electronic_nA = s.wire.shot_nA = s.wire.baseline_drift_nA = 0;  // the signal alone
+  const SynthResult off = synthesize(m, s);
+  s.scan.drive_mm = 0.3;
+  s.scan.drive_corr_mm = 1e5;
+  const SynthResult on = synthesize(m, s);
+  // Centroids over +-10 mm (5 turn widths: a narrower window cuts the turn's tails by amounts
+  // that change when the turn moves against the grid; the turns are 25-45 mm apart).
+  const auto p0 = find_peaks(off.profiles[0], 0.2, 10.0), p1 = find_peaks(on.profiles[0], 0.2, 10.0);
+  REQUIRE(p0.size() == off.centroids.size());
+  REQUIRE(p1.size() == p0.size());
+  const nlohmann::json t = truth_json(m, s, on);
+  REQUIRE(t["turns"]["P0"].size() == p0.size());
+  double moved = 0;
+  for (size_t i = 0; i < p0.size(); ++i) {
+    const double d = t["turns"]["P0"][i]["drive_mm"].get<double>();
+    CAPTURE(i, p0[i], p1[i], d);
+    CHECK(p1[i] - p0[i] == Approx(-d).margin(0.01));
+    moved = std::max(moved, std::fabs(d));
+  }
+  CHECK(moved > 0.05);  // the drawn drive error moved some turn visibly (it is 0.3 mm rms)
+  // Nothing else changed: the bunch, the drift, the baseline.
+  CHECK(on.centroids.size() == off.centroids.size());
+  for (size_t i = 0; i < on.centroids.size(); ++i) CHECK(on.centroids[i].r_mm == off.centroids[i].r_mm);
+  CHECK(on.profiles[0].baseline_nA == off.profiles[0].baseline_nA);
+}
+
+TEST_CASE("synth: readout jitter of known rms scatters a turn's centroid as predicted", "[synth]") {
+  // Each reading k records x_k while the wire is at x_k + e_k, e_k independent of rms eps. The
+  // centroid of a Gaussian turn S of rms s read every step moves to first order by
+  //   dc = sum x_k S'(x_k) e_k / sum S(x_k),  so  var = eps^2 sum x^2 S'^2 / (sum S)^2
+  //      = eps^2 * 3 step / (8 sqrt(pi) s)
+  // (sums as integrals: sum x^4/s^4 S^2 = A^2 3 sqrt(pi) s / (4 step), sum S = A sqrt(2 pi) s / step).
+  // For eps = 0.1, s = 1, step = 0.5: 0.0325 mm. Over N = 800 seeds the rms of the centroids has
+  // a relative standard error 1/sqrt(2N) = 2.5%; the bound, 10%, is 4 of them and leaves 1% for
+  // the second order in eps/s. Their mean (no bias) has standard error 0.0325/sqrt(800) = 0.0012.
+  WireModel w;
+  const double step = 0.5, h = 1.0, eps = 0.1;
+  SynthProfile p = single_turn(2200, step, w);
+  const double s = std::sqrt(h * h + w.wire_mm * w.wire_mm / 12);
+  const double want = eps * std::sqrt(3 * step / (8 * std::sqrt(kPi) * s));
+  ScanErrorModel sm;
+  sm.readout_mm = eps;
+  const int N = 800;
+  double ss = 0, sum = 0;
+  for (int seed = 1; seed <= N; ++seed) {
+    const ScanErrors e = draw_scan_errors(sm, p.position_mm, static_cast<std::uint64_t>(seed), 0);
+    REQUIRE(e.readout_mm.size() == p.position_mm.size());
+    apply_scan_errors(p, {2200}, {h}, 1, w, e);
+    const double d = signal_centroid(p) - 2200;
+    ss += d * d;
+    sum += d;
+  }
+  CAPTURE(want, std::sqrt(ss / N), sum / N);
+  CHECK(std::sqrt(ss / N) == Approx(want).epsilon(0.10));
+  CHECK(std::fabs(sum / N) < 4 * want / std::sqrt(N));
+}
+
+TEST_CASE("synth: scan errors are the same for a seed, on any thread count, and change nothing else", "[synth]") {
+  Machine m = iso_machine();
+  SynthSettings s = quick_settings(12, 48);
+  s.phases = false;
+  s.scan = synth_preset("paper").scan;
+  REQUIRE(s.scan.active());
+  s.threads = 1;
+  const SynthResult a = synthesize(m, s);
+  s.threads = 3;
+  const SynthResult b = synthesize(m, s);
+  CHECK(a.profiles.at(0).intensity == b.profiles.at(0).intensity);
+  CHECK(a.profiles[0].scan.drive_mm == b.profiles[0].scan.drive_mm);
+  CHECK(a.profiles[0].scan.drive_mm.size() == a.profiles[0].position_mm.size());
+  CHECK(a.profiles[0].scan.readout_mm.size() == a.profiles[0].position_mm.size());
+  CHECK(a.profiles[0].scan.intensity_factor.size() == a.profiles[0].position_mm.size());
+  s.seed = 2;
+  const SynthResult c = synthesize(m, s);
+  CHECK(c.profiles[0].scan.drive_mm != a.profiles[0].scan.drive_mm);
+  CHECK(c.profiles[0].intensity != a.profiles[0].intensity);
+  // Each source and each probe has its own stream: another probe draws other errors, and the
+  // three sources of one probe differ.
+  std::vector<double> x;
+  for (int k = 0; k < 200; ++k) x.push_back(0.5 * k);
+  ScanErrorModel all;
+  all.intensity_rel = 0.1;
+  all.drive_mm = 0.1;
+  all.readout_mm = 0.1;
+  all.intensity_corr_mm = all.drive_corr_mm = 0;  // all white: the same numbers if they shared a stream
+  const ScanErrors e0 = draw_scan_errors(all, x, 5, 0), e1 = draw_scan_errors(all, x, 5, 1);
+  auto far = [](const std::vector<double>& u, const std::vector<double>& v, double shift) {
+    double d = 0;  // largest difference of u - shift and v
+    for (size_t k = 0; k < u.size(); ++k) d = std::max(d, std::fabs(u[k] - shift - v[k]));
+    return d;
+  };
+  CHECK(far(e0.drive_mm, e1.drive_mm, 0) > 0.1);
+  CHECK(far(e0.drive_mm, e0.readout_mm, 0) > 0.1);
+  CHECK(far(e0.intensity_factor, e0.drive_mm, 1) > 0.1);
+  // Switching them on leaves the bunch, the drift and the baseline of the run alone.
+  s.seed = 1;
+  s.threads = 1;
+  SynthSettings plain = s;
+  plain.scan = ScanErrorModel{};
+  const SynthResult d = synthesize(m, plain);
+  CHECK(d.drift.dr_mm == a.drift.dr_mm);
+  CHECK(d.profiles[0].drift_nA == a.profiles[0].drift_nA);
+  REQUIRE(d.centroids.size() == a.centroids.size());
+  for (size_t i = 0; i < d.centroids.size(); ++i) CHECK(d.centroids[i].r_mm == a.centroids[i].r_mm);
+}
+
+TEST_CASE("synth: presets, their overrides and what truth.json records", "[synth]") {
+  const SynthPreset paper = synth_preset("paper"), none = synth_preset("none");
+  CHECK(paper.name == "paper");
+  CHECK(paper.scan.active());
+  // The paper preset moves part of the repeatability from the drift to the scan.
+  CHECK(paper.drift.r_mm < none.drift.r_mm);
+  CHECK(paper.drift.pr_mrad < none.drift.pr_mrad);
+  CHECK(paper.scan.drive_mm > 0);
+  std::string msg;
+  CHECK(error_code([] { synth_preset("papers"); }, &msg) == 64);
+  CHECK_THAT(msg, Catch::Contains("--scan-errors") && Catch::Contains("papers"));
+  const auto names = synth_preset_names();
+  CHECK(std::find(names.begin(), names.end(), "paper") != names.end());
+
+  // Overrides take the preset's place one by one; --no-drift zeroes the drift of any preset.
+  SynthOptions o;
+  o.scan_errors = "paper";
+  o.drive_mm = 0.11;
+  o.drift_r_mm = 0.2;
+  SynthPreset got = synth_models(o);
+  CHECK(got.name == "paper");
+  CHECK(got.scan.drive_mm == 0.11);
+  CHECK(got.scan.readout_mm == paper.scan.readout_mm);
+  CHECK(got.scan.intensity_rel == paper.scan.intensity_rel);
+  CHECK(got.drift.r_mm == 0.2);
+  CHECK(got.drift.pr_mrad == paper.drift.pr_mrad);
+  o.no_drift = true;
+  got = synth_models(o);
+  CHECK(got.drift.r_mm == 0);
+  CHECK(got.drift.voltage_rel == 0);
+  SynthOptions plain;
+  plain.readout_mm = 0.02;
+  got = synth_models(plain);
+  CHECK(got.name == "none");
+  CHECK(got.scan.readout_mm == 0.02);
+  CHECK(got.scan.drive_mm == 0);
+  CHECK(got.drift.r_mm == none.drift.r_mm);
+
+  // truth.json: the settings and the preset's name, each probe's realized rms, each turn's drive
+  // error; without scan errors, none of it (the file of a run without them is unchanged).
+  Machine m = iso_machine();
+  SynthSettings s = quick_settings(6, 16);
+  s.phases = false;
+  s.scan = paper.scan;
+  s.drift = paper.drift;
+  s.preset = "paper";
+  const SynthResult r = synthesize(m, s);
+  const nlohmann::json t = truth_json(m, s, r);
+  REQUIRE(t.contains("scan_errors"));
+  CHECK(t["scan_errors"]["preset"] == "paper");
+  CHECK(t["scan_errors"]["drive_mm"].get<double>() == paper.scan.drive_mm);
+  CHECK(t["scan_errors"]["drive_corr_mm"].get<double>() == paper.scan.drive_corr_mm);
+  CHECK(t["scan_errors"]["readout_mm"].get<double>() == paper.scan.readout_mm);
+  CHECK(t["scan_errors"]["intensity_rel"].get<double>() == paper.scan.intensity_rel);
+  CHECK(t["scan_errors"]["intensity_corr_mm"].get<double>() == paper.scan.intensity_corr_mm);
+  CHECK(t["scan_errors"]["profiles"]["P0"]["drive_rms_mm"].get<double>() > 0);
+  CHECK(t["drift"]["model"]["r_mm"].get<double>() == paper.drift.r_mm);
+  for (const auto& turn : t["turns"]["P0"]) CHECK(turn.contains("drive_mm"));
+  std::ostringstream os;
+  write_synth_profile(os, r.profiles[0], s.wire, s.seed, false, s.scan, s.preset);
+  CHECK_THAT(os.str(), Catch::Contains("# scan errors: preset=paper"));
+  s.scan = ScanErrorModel{};
+  s.preset = "none";
+  const SynthResult r0 = synthesize(m, s);
+  const nlohmann::json t0 = truth_json(m, s, r0);
+  CHECK_FALSE(t0.contains("scan_errors"));
+  for (const auto& turn : t0["turns"]["P0"]) CHECK_FALSE(turn.contains("drive_mm"));
+  std::ostringstream os0;
+  write_synth_profile(os0, r0.profiles[0], s.wire, s.seed, false, s.scan, s.preset);
+  CHECK_THAT(os0.str(), !Catch::Contains("scan errors"));
 }

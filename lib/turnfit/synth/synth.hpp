@@ -35,6 +35,49 @@ struct DriftModel {
   double voltage_rel = 1e-4;  ///< all cavity voltages together, relative (RF amplitude regulation)
 };
 
+/// Errors of one wire scan that change along the wire's travel, so that they move each turn's
+/// peak by its own amount (unlike the drift, which moves all turns of a run coherently and which
+/// a fit's design variables absorb). The wire is driven from the probe's start (s_min_mm) to its
+/// end at a constant speed, so a length along the travel is a time: t = x / v_scan. Each source
+/// is a stationary Gaussian process drawn from the run's seed in its own stream per probe; all
+/// rms 0 (the default) is no scan error at all, and the profiles are those of a model without it.
+/// Processes with a correlation length are Ornstein-Uhlenbeck processes in the travel x,
+/// exponential covariance rms^2 exp(-|dx| / corr) (Gillespie 1996, Phys. Rev. E 54, 2084:
+/// the exact update on a grid is the AR(1) step in ou_process()).
+struct ScanErrorModel {
+  double intensity_rel = 0;        ///< rms of the beam current's relative fluctuation f during the scan
+  double intensity_corr_mm = 5;    ///< correlation length of f in wire travel [mm] (v_scan times its correlation time)
+  double drive_mm = 0;             ///< rms of the drive error: the wire's true minus its recorded position [mm]
+  double drive_corr_mm = 10;       ///< correlation length of the drive error along the travel [mm]
+  double readout_mm = 0;           ///< rms of each reading's own position error (independent per reading) [mm]
+  /// Whether any source is on (an rms above 0).
+  bool active() const { return intensity_rel > 0 || drive_mm > 0 || readout_mm > 0; }
+};
+
+/// One scan's errors, drawn from a ScanErrorModel for the readings of one profile (or set by hand).
+/// Indexed like SynthProfile::position_mm; an empty vector is no error of that kind.
+struct ScanErrors {
+  std::vector<double> drive_mm;          ///< smooth drive error at each reading [mm]
+  std::vector<double> readout_mm;        ///< independent position error of each reading [mm]
+  std::vector<double> intensity_factor;  ///< beam current at each reading relative to its mean: 1 + f
+};
+
+/// A named measurement-error setting: the scan errors and the run-to-run drift that belong
+/// together, so that the total repeatability of repeated runs stays the paper's.
+struct SynthPreset {
+  std::string name;
+  ScanErrorModel scan;
+  DriftModel drift;
+};
+
+/// The preset called `name` ("none": today's drift, no scan error; "paper": per-turn scan errors
+/// and a smaller drift, together the paper's repeatability, see turnfit-synth(1)).
+/// EX_USAGE for an unknown name.
+SynthPreset synth_preset(const std::string& name);
+
+/// The names synth_preset() knows, in the order --help lists them.
+std::vector<std::string> synth_preset_names();
+
 /// One run's drift: the amounts drawn from a DriftModel.
 struct Drift {
   double dr_mm = 0;
@@ -58,6 +101,8 @@ struct SynthSettings {
   unsigned threads = 1;
   WireModel wire;
   DriftModel drift;
+  ScanErrorModel scan;      ///< per-turn errors of the wire scans (default: none)
+  std::string preset = "none";  ///< the name of the preset scan and drift came from (for truth.json)
   PhaseModel phase;
   bool profiles = true;     ///< make probe profiles
   bool phases = true;       ///< make phase scans (needs RF and a fundamental-harmonic cavity)
@@ -68,11 +113,12 @@ struct SynthProfile {
   std::string probe;
   double step_mm = 0;
   std::vector<double> position_mm;  ///< wire positions (the recorded radius, as track --histograms)
-  std::vector<double> signal_nA;    ///< noiseless intercepted current
+  std::vector<double> signal_nA;    ///< noiseless intercepted current (at the wire's true position, times 1 + f)
   std::vector<double> intensity;    ///< measured: signal, noise and baseline, divided by its maximum
   double baseline_nA = 0;           ///< offset of this scan
   double drift_nA = 0;              ///< baseline change from the first reading to the last
   double scale_nA = 0;              ///< the maximum the intensity was divided by
+  ScanErrors scan;                  ///< this scan's errors (empty without a scan-error model)
 };
 
 /// One trim coil's phase-shift scan: delta sin(phi) at the phase probes.
@@ -130,6 +176,38 @@ void apply_drift(Machine& m, const Drift& d);
 /// indexed like r_mm): the share of a Gaussian of that width inside the wire's width.
 std::vector<double> wire_signal(const std::vector<double>& position_mm, const std::vector<double>& r_mm,
                                 const std::vector<double>& bandwidth_mm, size_t particles, const WireModel& w);
+
+/// wire_signal with the wire at position_mm[k] + offset_mm[k] for reading k (offset_mm empty, or
+/// indexed like position_mm; position_mm an even grid): the true positions of a scan whose
+/// recorded positions are position_mm. An empty offset gives exactly wire_signal's numbers.
+std::vector<double> wire_signal(const std::vector<double>& position_mm, const std::vector<double>& offset_mm,
+                                const std::vector<double>& r_mm, const std::vector<double>& bandwidth_mm,
+                                size_t particles, const WireModel& w);
+
+/// n values of a stationary Ornstein-Uhlenbeck process of rms `rms` and correlation length
+/// `corr` sampled every `step` (same unit): x_0 = rms z_0, x_k = rho x_(k-1) + rms sqrt(1 - rho^2) z_k,
+/// rho = exp(-step / corr), z_k standard normal at address (seed, stream, k) (corr 0: white
+/// noise). The exact discretization, so the covariance is rms^2 rho^|k - j| for any step.
+std::vector<double> ou_process(size_t n, double step, double rms, double corr, std::uint64_t seed,
+                               std::uint64_t stream);
+
+/// The errors of one scan (a profile read at the grid position_mm) under `model`, drawn from
+/// `seed` in streams of their own for probe `stream` (none of them is the wire noise's, the
+/// drift's or the bunch's, so switching scan errors on changes nothing else). Empty vectors for
+/// the sources whose rms is 0.
+ScanErrors draw_scan_errors(const ScanErrorModel& model, const std::vector<double>& position_mm, std::uint64_t seed,
+                            std::uint64_t stream);
+
+/// Puts a scan's errors into a profile before its noise: the wire reading k sits at
+/// position_mm[k] + drive_mm[k] + readout_mm[k] (recorded at position_mm[k]), and the beam
+/// current at that moment is intensity_factor[k] times its mean, so
+///   signal_k = (1 + f_k) * signal(position_k + drive_k + readout_k)
+/// with signal() wire_signal's sum over the crossings r_mm of widths bandwidth_mm. Sets
+/// p.signal_nA and p.scan. A peak at r appears at the recorded x where x + drive(x) = r, i.e.
+/// moved by about -drive(r); a gradient of f across a Gaussian turn of rms s moves its centroid
+/// by s^2 d ln(1 + f)/dx.
+void apply_scan_errors(SynthProfile& p, const std::vector<double>& r_mm, const std::vector<double>& bandwidth_mm,
+                       size_t particles, const WireModel& w, const ScanErrors& e);
 
 /// Silverman's rule-of-thumb bandwidth (Silverman 1986, Eq. 3.28) for n crossings of rms
 /// spread sigma_mm: the smoothing that stands the macro-particles in for the continuous beam.

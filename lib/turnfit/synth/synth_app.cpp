@@ -1,9 +1,11 @@
 // turnfit-synth: synthetic probe profiles, trim coil phase scans and the hidden truth of a run.
 #include "turnfit/synth/synth_app.hpp"
 
+#include <algorithm>
 #include <cmath>
 #include <cstdio>
 #include <filesystem>
+#include <map>
 #include <memory>
 
 #include "turnfit/io/error.hpp"
@@ -12,6 +14,24 @@
 #include "turnfit/physics/particle.hpp"
 
 namespace turnfit {
+namespace {
+
+/// An rms or a length: 0 or more (CLI11 prefixes the option's name to the message).
+const CLI::Validator kNonNegative(
+    [](std::string& v) {
+      double x = 0;
+      try {
+        size_t used = 0;
+        x = std::stod(v, &used);
+        if (used != v.size()) return v + " is not a number";
+      } catch (const std::exception&) {
+        return v + " is not a number";
+      }
+      return std::isfinite(x) && x >= 0 ? std::string() : v + " must be 0 or more";
+    },
+    "NONNEGATIVE");
+
+}  // namespace
 
 void add_synth_options(CLI::App& app, SynthOptions& o) {
   app.description(
@@ -38,13 +58,41 @@ void add_synth_options(CLI::App& app, SynthOptions& o) {
   app.add_option("--baseline-nA", o.wire.baseline_nA, "Baseline offset [nA]")->capture_default_str();
   app.add_option("--baseline-drift-nA", o.wire.baseline_drift_nA, "Rms baseline drift over a scan [nA]")
       ->check(CLI::NonNegativeNumber)->capture_default_str();
-  app.add_option("--drift-r-mm", o.drift.r_mm, "Run-to-run rms change of the injection radius [mm]")
-      ->check(CLI::NonNegativeNumber)->capture_default_str();
-  app.add_option("--drift-pr-mrad", o.drift.pr_mrad, "Run-to-run rms change of the injection angle [mrad]")
-      ->check(CLI::NonNegativeNumber)->capture_default_str();
-  app.add_option("--drift-voltage-rel", o.drift.voltage_rel, "Run-to-run rms relative change of the cavity voltages")
-      ->check(CLI::NonNegativeNumber)->capture_default_str();
+  // The preset's values, shown in the help so that it cannot go stale.
+  const SynthPreset none = synth_preset("none"), paper = synth_preset("paper");
+  auto dflt = [](double a, double b) {
+    return " (default: the preset's, none " + cli::fmt(a, 6) + ", paper " + cli::fmt(b, 6) + ")";
+  };
+  app.add_option("--scan-errors", o.scan_errors,
+                 "Measurement-error preset: none (run-to-run drift only, the default) or paper (per-turn scan "
+                 "errors and a smaller drift, together the paper's repeatability, sigma about 0.5 mm)")
+      ->check(CLI::IsMember(synth_preset_names()))->capture_default_str();
+  app.add_option("--drift-r-mm", o.drift_r_mm, "Run-to-run rms change of the injection radius [mm]" +
+                                                   dflt(none.drift.r_mm, paper.drift.r_mm))
+      ->check(kNonNegative);
+  app.add_option("--drift-pr-mrad", o.drift_pr_mrad, "Run-to-run rms change of the injection angle [mrad]" +
+                                                         dflt(none.drift.pr_mrad, paper.drift.pr_mrad))
+      ->check(kNonNegative);
+  app.add_option("--drift-voltage-rel", o.drift_voltage_rel, "Run-to-run rms relative change of the cavity voltages" +
+                                                                 dflt(none.drift.voltage_rel, paper.drift.voltage_rel))
+      ->check(kNonNegative);
   app.add_flag("--no-drift", o.no_drift, "Measure the truth machine itself (no run-to-run drift)");
+  app.add_option("--intensity-rel", o.intensity_rel, "Rms relative fluctuation of the beam current during a scan" +
+                                                         dflt(none.scan.intensity_rel, paper.scan.intensity_rel))
+      ->check(CLI::Range(0.0, 1.0));
+  app.add_option("--intensity-corr-mm", o.intensity_corr_mm,
+                 "Correlation length of the current's fluctuation in wire travel [mm]" +
+                     dflt(none.scan.intensity_corr_mm, paper.scan.intensity_corr_mm))
+      ->check(kNonNegative);
+  app.add_option("--drive-mm", o.drive_mm, "Rms probe drive error, the wire's true minus recorded position [mm]" +
+                                               dflt(none.scan.drive_mm, paper.scan.drive_mm))
+      ->check(kNonNegative);
+  app.add_option("--drive-corr-mm", o.drive_corr_mm, "Correlation length of the drive error along the travel [mm]" +
+                                                         dflt(none.scan.drive_corr_mm, paper.scan.drive_corr_mm))
+      ->check(kNonNegative);
+  app.add_option("--readout-mm", o.readout_mm, "Rms position error of each reading, independent [mm]" +
+                                                   dflt(none.scan.readout_mm, paper.scan.readout_mm))
+      ->check(kNonNegative);
   app.add_option("--phase-step-mm", o.phase.step_mm, "Radial spacing of the phase probes [mm]")
       ->check(CLI::Range(0.01, 1e4))->capture_default_str();
   app.add_option("--phase-azimuth-deg", o.phase.azimuth_deg, "Azimuth of the phase probes [deg]")->capture_default_str();
@@ -70,13 +118,34 @@ std::string file_name(const Machine& m, const std::string& where, const std::str
 
 }  // namespace
 
+SynthPreset synth_models(const SynthOptions& o) {
+  SynthPreset p = synth_preset(o.scan_errors);
+  auto take = [](const std::optional<double>& v, double& into) {
+    if (v) into = *v;
+  };
+  take(o.drift_r_mm, p.drift.r_mm);
+  take(o.drift_pr_mrad, p.drift.pr_mrad);
+  take(o.drift_voltage_rel, p.drift.voltage_rel);
+  if (o.no_drift) p.drift = DriftModel{0, 0, 0};
+  take(o.intensity_rel, p.scan.intensity_rel);
+  take(o.intensity_corr_mm, p.scan.intensity_corr_mm);
+  take(o.drive_mm, p.scan.drive_mm);
+  take(o.drive_corr_mm, p.scan.drive_corr_mm);
+  take(o.readout_mm, p.scan.readout_mm);
+  return p;
+}
+
 void write_synth_profile(std::ostream& os, const SynthProfile& p, const WireModel& w, std::uint64_t seed,
-                         bool provenance) {
+                         bool provenance, const ScanErrorModel& scan, const std::string& preset) {
   if (provenance) os << cli::provenance_comment();
   os << "# probe=" << p.probe << " step_mm=" << num(p.step_mm, 6) << " current_uA=" << num(w.current_uA, 6)
      << " seed=" << seed << "\n";
   os << "# synthetic: wire_mm=" << num(w.wire_mm, 6) << " intensity=reading/" << num(p.scale_nA, 6)
      << "nA (normalized to the highest reading)\n";
+  if (scan.active() || preset != "none")
+    os << "# scan errors: preset=" << preset << " intensity_rel=" << num(scan.intensity_rel, 6)
+       << " intensity_corr_mm=" << num(scan.intensity_corr_mm, 6) << " drive_mm=" << num(scan.drive_mm, 6)
+       << " drive_corr_mm=" << num(scan.drive_corr_mm, 6) << " readout_mm=" << num(scan.readout_mm, 6) << "\n";
   os << "position_mm,intensity\n";
   char buf[96];
   for (size_t k = 0; k < p.position_mm.size(); ++k) {
@@ -141,6 +210,26 @@ nlohmann::json truth_json(const Machine& truth, const SynthSettings& s, const Sy
                {"baseline_nA", s.wire.baseline_nA},
                {"baseline_drift_nA", s.wire.baseline_drift_nA},
                {"profiles", prof}};
+  if (s.scan.active() || s.preset != "none") {
+    // Only then: a run without scan errors writes the truth.json it always wrote.
+    json per = json::object();
+    auto rms_of = [](const std::vector<double>& v, double centre) {
+      double q = 0;
+      for (double x : v) q += (x - centre) * (x - centre);
+      return v.empty() ? 0.0 : std::sqrt(q / static_cast<double>(v.size()));
+    };
+    for (const auto& p : r.profiles)
+      per[p.probe] = {{"drive_rms_mm", rms_of(p.scan.drive_mm, 0)},
+                      {"readout_rms_mm", rms_of(p.scan.readout_mm, 0)},
+                      {"intensity_rms_rel", rms_of(p.scan.intensity_factor, 1)}};
+    j["scan_errors"] = {{"preset", s.preset},
+                        {"intensity_rel", s.scan.intensity_rel},
+                        {"intensity_corr_mm", s.scan.intensity_corr_mm},
+                        {"drive_mm", s.scan.drive_mm},
+                        {"drive_corr_mm", s.scan.drive_corr_mm},
+                        {"readout_mm", s.scan.readout_mm},
+                        {"profiles", per}};
+  }
   json coils = json::object();
   for (const auto& p : r.phases) coils[p.coil] = {{"nominal_T", p.nominal_T}, {"excitation_T", p.excitation_T}};
   j["phase"] = {{"step_mm", s.phase.step_mm},
@@ -150,9 +239,25 @@ nlohmann::json truth_json(const Machine& truth, const SynthSettings& s, const Sy
   // The bunch's true crossing positions of this run: what a perfect peak finder would report.
   json turns = json::object();
   for (const auto& name : r.probe_names) turns[name] = json::array();
-  for (const auto& c : r.centroids)
-    turns[r.probe_names[static_cast<size_t>(c.probe)]].push_back(
-        {{"turn", c.turn}, {"r_mm", c.r_mm}, {"r_rms_mm", c.r_rms_mm}, {"particles", c.particles}});
+  // With a drive error: its value at each turn's centre (the wire's true minus recorded position
+  // there; the turn's peak appears about that much further in), interpolated between readings.
+  std::map<std::string, const SynthProfile*> prof_of;
+  for (const auto& p : r.profiles) prof_of[p.probe] = &p;
+  for (const auto& c : r.centroids) {
+    const std::string& name = r.probe_names[static_cast<size_t>(c.probe)];
+    json t = {{"turn", c.turn}, {"r_mm", c.r_mm}, {"r_rms_mm", c.r_rms_mm}, {"particles", c.particles}};
+    if (auto it = prof_of.find(name); it != prof_of.end() && !it->second->scan.drive_mm.empty()) {
+      const SynthProfile& p = *it->second;
+      const std::vector<double>& x = p.position_mm;
+      const double u = x.size() > 1 ? (c.r_mm - x.front()) / (x[1] - x[0]) : 0.0;
+      const size_t n = x.size();
+      const double uc = std::clamp(u, 0.0, static_cast<double>(n - 1));
+      const size_t k = std::min(n > 1 ? n - 2 : 0, static_cast<size_t>(uc));
+      const double a = n > 1 ? uc - static_cast<double>(k) : 0.0;
+      t["drive_mm"] = n > 1 ? (1 - a) * p.scan.drive_mm[k] + a * p.scan.drive_mm[k + 1] : p.scan.drive_mm[0];
+    }
+    turns[name].push_back(t);
+  }
   j["turns"] = turns;
   j["machine_doc"] = truth.doc;
   if (auto p = cli::provenance(); !p.empty()) j["provenance"] = p;
@@ -173,7 +278,10 @@ int run_synth(const SynthOptions& o) {
   s.seed = o.common.seed;
   s.threads = cli::resolve_threads(o.common.threads);
   s.wire = o.wire;
-  s.drift = o.no_drift ? DriftModel{0, 0, 0} : o.drift;
+  const SynthPreset models = synth_models(o);
+  s.drift = models.drift;
+  s.scan = models.scan;
+  s.preset = models.name;
   s.phase = o.phase;
   s.profiles = !o.no_profiles;
   s.phases = !o.no_phase;
@@ -225,7 +333,7 @@ int run_synth(const SynthOptions& o) {
   std::vector<std::unique_ptr<OutputFile>> files;
   for (size_t i = 0; i < r.profiles.size(); ++i) {
     files.push_back(std::make_unique<OutputFile>((fs::path(o.out) / profile_files[i]).string()));
-    write_synth_profile(files.back()->stream(), r.profiles[i], s.wire, s.seed, prov);
+    write_synth_profile(files.back()->stream(), r.profiles[i], s.wire, s.seed, prov, s.scan, s.preset);
   }
   for (size_t i = 0; i < r.phases.size(); ++i) {
     files.push_back(std::make_unique<OutputFile>((fs::path(o.out) / "phase" / phase_files[i]).string()));

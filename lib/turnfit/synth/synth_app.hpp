@@ -3,6 +3,7 @@
 
 #include <CLI/CLI.hpp>
 #include <nlohmann/json.hpp>
+#include <optional>
 #include <ostream>
 #include <string>
 #include <vector>
@@ -24,7 +25,10 @@ struct SynthOptions {
   std::string integrator;     ///< empty: the machine's, else "azimuth"
   double step_deg = 0;        ///< 0: the machine's, else the tracker's default
   WireModel wire;
-  DriftModel drift;
+  std::string scan_errors = "none";  ///< --scan-errors: the preset of scan errors and drift
+  /// Overrides of the preset's values (unset: the preset's).
+  std::optional<double> drift_r_mm, drift_pr_mrad, drift_voltage_rel;
+  std::optional<double> intensity_rel, intensity_corr_mm, drive_mm, drive_corr_mm, readout_mm;
   bool no_drift = false;
   PhaseModel phase;
   bool no_phase = false;
@@ -37,9 +41,14 @@ void add_synth_options(CLI::App& app, SynthOptions& o);
 /// Runs turnfit-synth; returns the exit code.
 int run_synth(const SynthOptions& o);
 
-/// Writes one synthetic probe profile (position_mm,intensity with '#' metadata lines).
+/// The drift and scan-error models an invocation asks for: the preset's, with the options given
+/// in their place, and no drift at all with --no-drift. EX_USAGE for an unknown preset.
+SynthPreset synth_models(const SynthOptions& o);
+
+/// Writes one synthetic probe profile (position_mm,intensity with '#' metadata lines; a line
+/// with the scan-error model when `scan` is on or the preset is not "none").
 void write_synth_profile(std::ostream& os, const SynthProfile& p, const WireModel& w, std::uint64_t seed,
-                         bool provenance);
+                         bool provenance, const ScanErrorModel& scan = {}, const std::string& preset = "none");
 
 /// Writes one phase scan (r_mm,dsinphi with '#' metadata lines).
 void write_phase_scan(std::ostream& os, const PhaseScan& s, const PhaseModel& pm, std::uint64_t seed,
