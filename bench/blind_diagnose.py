@@ -131,6 +131,7 @@ from blind_localsearch import (MACHINE, REPO, PROTON_MEV, ToolError, check_numbe
                                paper_variables, read_csv, run, turns_of, write_json)
 
 R8 = os.path.dirname(MACHINE)
+NOMINAL = json.load(open(MACHINE, encoding="utf-8"))
 TYPES = ("field-harmonic", "sector-strength", "trimcoil-sectors", "gap-bow", "voltage-tilt")
 KINDS = ("control", "single", "pair", "outside")
 KIND_DECK = ("control", "single", "single", "single", "pair", "outside")
@@ -146,23 +147,25 @@ VOLTAGE_VARS = ("vmaincav1", "vmaincav2", "vmaincav3", "vmaincav4", "vftcav", "v
 
 # Sizes: (lo, hi) of the magnitude per type and size class. Calibrated on tuning master seeds
 # against the detection limits turnfit-diagnose reports (bench/RESULTS.md, "Blind suite for
-# turnfit-diagnose"); field-harmonic per n. PROVISIONAL until that calibration: from the
-# signatures in turnfit-machine(5) (peaks ~0.01-0.03 mm rms).
+# turnfit-diagnose"); field-harmonic per n. PROVISIONAL until that calibration: from noiseless
+# fits (turnfit-localsearch, the 48 variables, on turnfit-track --centroid turns of nominal +
+# one effect), scaled so that the residual the variables leave is 0.01-0.02 mm rms ("visible")
+# or 0.002-0.004 mm ("near"); the peaks' own errors are ~0.01 mm rms over ~190 turns.
 SIZES = {
-    ("field-harmonic", 0): {"visible": (3e-4, 6e-4), "near": (5e-5, 1e-4)},
-    ("field-harmonic", 1): {"visible": (1e-4, 2e-4), "near": (1e-5, 2e-5)},
-    ("field-harmonic", 2): {"visible": (3e-4, 6e-4), "near": (5e-5, 1e-4)},
-    "sector-strength": {"visible": (1e-4, 2e-4), "near": (1e-5, 2e-5)},
-    "trimcoil-sectors": {"visible": (1.0e-3, 1.8e-3), "near": (2e-4, 4e-4)},
-    "gap-bow": {"visible": (15.0, 30.0), "near": (3.0, 6.0)},
-    "voltage-tilt": {"visible": (0.02, 0.04), "near": (0.003, 0.006)},
+    ("field-harmonic", 0): {"visible": (5e-5, 1e-4), "near": (1e-5, 2e-5)},
+    ("field-harmonic", 1): {"visible": (6e-4, 1.2e-3), "near": (1.2e-4, 2.4e-4)},
+    ("field-harmonic", 2): {"visible": (6e-4, 1.2e-3), "near": (1.2e-4, 2.4e-4)},
+    "sector-strength": {"visible": (1.2e-3, 2.5e-3), "near": (2.5e-4, 5e-4)},
+    "trimcoil-sectors": {"visible": (1.5e-3, 1.9e-3), "near": (5e-4, 1e-3)},
+    "gap-bow": {"visible": (250.0, 500.0), "near": (80.0, 160.0)},
+    "voltage-tilt": {"visible": (0.1, 0.2), "near": (0.02, 0.04)},
 }
 SIZE_PARAM = {"field-harmonic": "amplitude_T", "sector-strength": "relative", "trimcoil-sectors": "bmax_T",
               "gap-bow": "sagitta_mm", "voltage-tilt": "slope"}
 OUTSIDE_SIZES = {
-    "profile-bump": {"visible": (0.03, 0.06), "near": (0.005, 0.01)},       # A, relative
-    "transit-time": {"visible": (100.0, 200.0), "near": (20.0, 40.0)},      # gap width change [mm]
-    "field-scale": {"visible": (5e-5, 1e-4), "near": (5e-6, 1e-5)},         # eps
+    "profile-bump": {"visible": (0.012, 0.025), "near": (0.0025, 0.005)},   # A, relative
+    "transit-time": {"visible": (400.0, 700.0), "near": (100.0, 200.0)},    # gap width increase [mm]
+    "field-scale": {"visible": (6e-5, 1.2e-4), "near": (1.2e-5, 2.5e-5)},   # eps
 }
 # What counts as an honest approximation of an outside-catalogue change (see the doc).
 def approximates(outside, eff):
@@ -215,7 +218,9 @@ def draw_effect(rng, typ, size, dvars, bounds):
         eff = {"type": typ, "sector": rng.randint(1, SECTORS), "relative": sign * uniform_size(rng, SIZES[typ], size)}
     elif typ == "gap-bow":
         cav = rng.choice(CAVITIES)
-        eff = {"type": typ, "cavity": cav, "sagitta_mm": sign * uniform_size(rng, SIZES[typ], size)}
+        c = next(x for x in NOMINAL["cavities"] if x["name"] == cav)
+        most = 0.95 * (c["rmax_mm"] - c.get("rmin_mm", 0.0)) / 10  # |sagitta| <= a tenth of the gap
+        eff = {"type": typ, "cavity": cav, "sagitta_mm": sign * min(most, uniform_size(rng, SIZES[typ], size))}
     elif typ == "voltage-tilt":
         cav = rng.choice(CAVITIES)
         eff = {"type": typ, "cavity": cav, "slope": sign * uniform_size(rng, SIZES[typ], size), "pivot_rho_n": 0.5}
@@ -250,7 +255,7 @@ def draw_outside(rng, kind, size):
         o.update(cavity=rng.choice(MAIN_CAVITIES), amplitude_rel=sign * mag, rho0=rng.uniform(0.25, 0.6),
                  width_rho=rng.uniform(0.03, 0.08))
     elif kind == "transit-time":
-        o.update(cavity=rng.choice(MAIN_CAVITIES), dgap_mm=sign * mag)
+        o.update(cavity=rng.choice(MAIN_CAVITIES), dgap_mm=mag)  # wider only: a gap cannot shrink by more than its 300 mm
     elif kind == "field-scale":
         o.update(eps=sign * mag)
     return o
