@@ -21,6 +21,7 @@ const char* const kTools[][2] = {
     {"plot", "figures (PNG, SVG) of profiles and peaks, turn separation, residuals, trim coil fits"},
     {"nsga", "NSGA-II with constraints: threads or MPI, population log that resumes a killed run"},
     {"localsearch", "fit a turn-pattern problem's design variables: Levenberg-Marquardt, uncertainties"},
+    {"diagnose", "what physics the model lacks: locate the mismatch, name the effect, refit"},
 };
 
 void usage(std::ostream& os) {

@@ -268,6 +268,46 @@ std::unique_ptr<TurnPatternProblem> TurnPatternProblem::from_json(const nlohmann
   return p;
 }
 
+std::unique_ptr<TurnPatternProblem> TurnPatternProblem::with_machine(Machine m, std::vector<TurnVariable> vars,
+                                                                     const std::vector<double>& shift_x,
+                                                                     bool hold_shift) const {
+  std::vector<double> lo, hi;
+  std::vector<std::string> names;
+  for (const auto& v : vars) {
+    auto it = m.dvars.find(v.name);
+    if (it == m.dvars.end()) throw Error(ExitCode::software, "with_machine: no design variable " + v.name);
+    it->second.lower = v.lower;
+    it->second.upper = v.upper;
+    lo.push_back(v.lower);
+    hi.push_back(v.upper);
+    names.push_back(v.name);
+  }
+  if (shift_x.size() != vars.size()) throw Error(ExitCode::software, "with_machine: the shift's design has the wrong size");
+  std::unique_ptr<TurnPatternProblem> p(
+      new TurnPatternProblem(name(), lo, hi, names, objectives_.size(), turn_count_ ? 1 : 0));
+  p->file_ = file_;
+  p->files_ = files_;
+  p->machine_ = std::move(m);
+  p->settings_ = settings_;
+  p->vars_ = std::move(vars);
+  p->measured_ = measured_;
+  p->objectives_ = objectives_;
+  p->plan_ = plan_;
+  p->turn_count_ = turn_count_;
+  p->sigma_mm_ = sigma_mm_;
+  p->bunch_mode_ = bunch_mode_;
+  if (!hold_shift) p->nodes_ = nodes_;
+  p->shift_ = shift_;
+  if (!p->shift_.x.empty()) p->shift_.x = shift_x;
+  return p;
+}
+
+void TurnPatternProblem::set_sigma_mm(std::vector<double> sigma) {
+  if (!sigma.empty() && sigma.size() != measured_.points.size())
+    throw Error(ExitCode::software, "set_sigma_mm: one sigma per measured point");
+  sigma_mm_ = std::move(sigma);
+}
+
 std::vector<double> TurnPatternProblem::start() const {
   std::vector<double> x;
   for (const auto& v : vars_) x.push_back(v.start);

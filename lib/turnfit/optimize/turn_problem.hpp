@@ -121,6 +121,20 @@ class TurnPatternProblem : public Problem {
   /// The problem file, for messages.
   const std::string& file() const { return file_; }
 
+  /// The same measurement, objectives and model files with another machine document and
+  /// variables: `m` is this problem's machine changed in memory (e.g. effects added to its
+  /// `effects`, each with design variables bound to their parameters), `vars` design variables
+  /// of `m` in the order of x. Reads nothing from disk (the model's files are this problem's:
+  /// `m` must name no other file). The centroid shift in use is kept, as computed at the design
+  /// `shift_x` (x of the new variables); with `hold_shift` it stays the shift of every later
+  /// evaluation (the copy tracks no bunch: a fit of it never recomputes the shift). EX_SOFTWARE
+  /// for a variable `m` lacks.
+  std::unique_ptr<TurnPatternProblem> with_machine(Machine m, std::vector<TurnVariable> vars,
+                                                   const std::vector<double>& shift_x, bool hold_shift = false) const;
+  /// Sets the peak-position uncertainty per measured point [mm] (empty: a fit estimates it).
+  /// Not while evaluations run.
+  void set_sigma_mm(std::vector<double> sigma);
+
  private:
   TurnPatternProblem(std::string name, std::vector<double> lower, std::vector<double> upper,
                      std::vector<std::string> names, size_t n_objectives, size_t n_constraints);

@@ -1,0 +1,786 @@
+// The diagnosis: base fit, noise, locate, linearized screening of the catalogue, nonlinear
+// refits of the strongest candidates, greedy selection by BIC and held-out gain.
+#include "turnfit/diagnose/diagnose.hpp"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <set>
+
+#include "turnfit/cli/common.hpp"
+#include "turnfit/io/error.hpp"
+#include "turnfit/io/parallel.hpp"
+
+namespace turnfit {
+
+using nlohmann::json;
+using Eigen::Index;
+using Eigen::MatrixXd;
+using Eigen::VectorXd;
+
+namespace {
+
+/// The current model: a problem (the machine with the effects selected so far, each with
+/// design variables on its parameters) and its design.
+struct State {
+  std::unique_ptr<TurnPatternProblem> prob;
+  std::vector<double> x;
+  size_t n_problem = 0;  ///< the problem's own variables come first in x
+};
+
+/// A selected effect: where its entries sit in the machine and which variables carry it.
+struct Selected {
+  const Candidate* cand = nullptr;
+  size_t first_entry = 0;            ///< index of its first entry in the machine's effects
+  std::vector<size_t> param_vars;    ///< indices in x of its linear parameters, then its shape ones
+  json screen;                       ///< its scores when selected
+  std::vector<double> signature_mm;  ///< per measured point, at the fitted size (NaN: unused)
+};
+
+/// Machine m with `entries` appended to its effects; returns the first new index.
+size_t append_entries(Machine& m, const std::vector<json>& entries) {
+  if (!m.doc.contains("effects")) m.doc["effects"] = json::array();
+  const size_t first = m.doc["effects"].size();
+  for (const auto& e : entries) m.doc["effects"].push_back(e);
+  revalidate(m);
+  return first;
+}
+
+std::string pointer(size_t entry, const std::string& key) { return "/effects/" + std::to_string(entry) + "/" + key; }
+
+/// The data rows: measured points used in the linear model (matched at the state, not outliers).
+struct Rows {
+  std::vector<size_t> point;   ///< measured point of each data row
+  std::vector<int> fold;       ///< its held-out fold
+  std::vector<double> sigma;   ///< per measured point
+};
+
+/// The linearized model at a state: z (data rows in sigma, then one prior row per variable)
+/// and J (d z / d x).
+struct Linear {
+  VectorXd z;
+  MatrixXd J;
+  size_t data = 0;
+};
+
+double clamp(double v, double lo, double hi) { return std::max(lo, std::min(hi, v)); }
+
+/// Least squares pieces of the base model on a subset of rows: Q, R of J's thin QR (J has full
+/// column rank: every variable has a prior row).
+struct Base {
+  MatrixXd Q, R;
+  VectorXd Pz;   ///< z projected off J's span
+  VectorXd Qtz;  ///< Q^T z
+};
+
+Base base_of(const MatrixXd& J, const VectorXd& z) {
+  Base b;
+  Eigen::HouseholderQR<MatrixXd> qr(J);
+  b.Q = qr.householderQ() * MatrixXd::Identity(J.rows(), J.cols());
+  b.R = qr.matrixQR().topRows(J.cols()).triangularView<Eigen::Upper>();
+  b.Qtz = b.Q.transpose() * z;
+  b.Pz = z - b.Q * b.Qtz;
+  return b;
+}
+
+/// A candidate's linear screen: chi2 gain, coefficients and their covariance.
+struct Screen {
+  double dchi2 = 0;
+  VectorXd c;
+  MatrixXd cov;  ///< of c (unit noise)
+  MatrixXd M;    ///< (P C)^T (P C)
+  double visible = 1;  ///< share of the signature the variables cannot take up
+};
+
+Screen screen_columns(const Base& b, const MatrixXd& C) {
+  Screen s;
+  const MatrixXd PC = C - b.Q * (b.Q.transpose() * C);
+  s.M = PC.transpose() * PC;
+  Eigen::CompleteOrthogonalDecomposition<MatrixXd> cod(PC);
+  s.c = -cod.solve(b.Pz);
+  s.dchi2 = b.Pz.squaredNorm() - (b.Pz + PC * s.c).squaredNorm();
+  s.cov = s.M.completeOrthogonalDecomposition().pseudoInverse();
+  const double total = C.squaredNorm();
+  s.visible = total > 0 ? PC.squaredNorm() / total : 0;
+  return s;
+}
+
+json jnum(double v) { return std::isfinite(v) ? json(v) : json(nullptr); }
+
+double norm_angle(double deg, double period) {
+  double a = std::fmod(deg, period);
+  return a < 0 ? a + period : a;
+}
+
+}  // namespace
+
+Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const DiagnoseSettings& s) {
+  const auto t_start = std::chrono::steady_clock::now();
+  Diagnosis out;
+  const unsigned threads = resolve_thread_count(s.threads);
+  auto log = [&](const std::string& line) {
+    if (s.log) s.log(line);
+  };
+  const TurnTable& meas = p.measured();
+  const size_t N = meas.points.size();
+  size_t evaluations = 0;
+
+  // 1. Base fit: localsearch's least squares (its own sigma estimate), no minimax polish.
+  LocalSearchSettings fs = s.fit;
+  fs.threads = threads;
+  fs.minimax = false;
+  // Turn continuation finds the valley from far; a start given from an earlier fit is in it.
+  if (x0 != p.start()) fs.stages = 1;
+  log("base fit of " + std::to_string(p.variables().size()) + " design variables");
+  out.base_fit = local_search(p, x0, fs);
+  evaluations += out.base_fit.evaluations;
+
+  // 2. The noise, from the base fit's residual.
+  auto residual = [&](const TurnPatternProblem& q, const std::vector<double>& x, std::vector<unsigned char>& matched) {
+    const TurnPatternResult r = q.simulate(x);
+    if (!r.ok) throw Error(ExitCode::data, "diagnose: a fitted design cannot be simulated: " + r.reason);
+    matched = r.matched;
+    return r.delta_mm;
+  };
+  std::vector<unsigned char> matched;
+  std::vector<double> e = residual(p, out.base_fit.x, matched);
+  ++evaluations;
+  out.noise = estimate_noise(meas, e, matched);
+  std::vector<double> sigma_fit = out.noise.sigma_mm;
+  for (size_t i = 0; i < N; ++i)
+    if (out.noise.outlier[i]) sigma_fit[i] *= 1e3;  // left out of every fit that follows
+  {
+    std::string line = "noise from the residual's second differences:";
+    for (size_t k = 0; k < out.noise.probes.size(); ++k)
+      line += " " + out.noise.probes[k] + " " + cli::fmt(out.noise.scatter_mm[k], 3) + " mm";
+    log(line);
+  }
+
+  // The base model refitted with that noise as every turn's sigma (one pass from the fit).
+  State st;
+  // Every model from here on holds the base fit's centroid shift: the effects and the
+  // variables' small moves change it far below the noise, and recomputing it costs a track
+  // of every quadrature particle per pass of every refit.
+  st.prob = p.with_machine(p.machine(), p.variables(), out.base_fit.x, true);
+  st.prob->set_sigma_mm(sigma_fit);
+  st.n_problem = p.variables().size();
+  LocalSearchSettings rs = fs;
+  rs.stages = 1;
+  // Refits start at the linearized joint optimum: a few iterations reach the valley floor, and
+  // an unfinished one only understates an effect's gain.
+  rs.max_iterations = std::min(rs.max_iterations, 12);
+  rs.progress = nullptr;
+  {
+    const LocalSearchResult r = local_search(*st.prob, out.base_fit.x, rs);
+    evaluations += r.evaluations;
+    st.x = r.x;
+  }
+  out.x_base = st.x;
+
+  const TuneTable tunes = radial_tunes(p.machine(), threads);
+  const Catalogue cat = effect_catalogue(p, s.types);
+  out.not_candidates = cat.not_candidates;
+  log(std::to_string(cat.candidates.size()) + " candidates (" + std::to_string(cat.atoms.size()) +
+      " single-coil signatures for the trim coil groups)");
+
+  // Folds: interleaved along each probe's turns.
+  Rows rows;
+  rows.sigma = out.noise.sigma_mm;
+  auto make_rows = [&](const std::vector<unsigned char>& m) {
+    rows.point.clear();
+    rows.fold.clear();
+    for (size_t p2 = 0; p2 < meas.probes.size(); ++p2) {
+      auto [b, end] = meas.probe_range(static_cast<int>(p2));
+      int k = 0;
+      for (size_t i = b; i < end; ++i)
+        if (m[i] && !out.noise.outlier[i]) {
+          rows.point.push_back(i);
+          rows.fold.push_back(k++ % std::max(2, s.folds));
+        }
+    }
+  };
+
+  // A residual on the used rows (and the outliers, shown but not fitted); NaN elsewhere.
+  auto used_flags = [&](const std::vector<double>& ev) {
+    std::vector<unsigned char> mm(N, 0);
+    for (size_t r = 0; r < rows.point.size(); ++r) mm[rows.point[r]] = 1;
+    for (size_t i = 0; i < N; ++i)
+      if (out.noise.outlier[i] && !std::isnan(ev[i])) mm[i] = 1;
+    return mm;
+  };
+  auto used_residual = [&](const std::vector<double>& ev) {
+    const std::vector<unsigned char> mm = used_flags(ev);
+    std::vector<double> r(N, std::nan(""));
+    for (size_t i = 0; i < N; ++i)
+      if (mm[i]) r[i] = ev[i];
+    return r;
+  };
+
+  // The linear model at the state: residual and the variables' Jacobian (forward differences,
+  // localsearch's step), with one prior row per variable (the problem's prior, else the weak
+  // prior toward the machine's value; an effect's parameter has a wide prior toward absent).
+  auto linearize = [&](const State& S, std::vector<double>& e_out) {
+    std::vector<unsigned char> m;
+    e_out = residual(*S.prob, S.x, m);
+    ++evaluations;
+    make_rows(m);
+    const auto& vars = S.prob->variables();
+    const size_t n = vars.size(), nd = rows.point.size();
+    Linear L;
+    L.data = nd;
+    L.z.resize(static_cast<Index>(nd + n));
+    L.J.setZero(static_cast<Index>(nd + n), static_cast<Index>(n));
+    for (size_t r = 0; r < nd; ++r) L.z[static_cast<Index>(r)] = e_out[rows.point[r]] / rows.sigma[rows.point[r]];
+    std::vector<std::vector<double>> cols(n);
+    parallel_for(n, threads, [&](size_t j, unsigned) {
+      std::vector<double> x = S.x;
+      double h = s.fit.fd_step * (vars[j].upper - vars[j].lower);
+      if (x[j] + h > vars[j].upper) h = -h;
+      x[j] += h;
+      std::vector<unsigned char> mj;
+      const std::vector<double> ej = residual(*S.prob, x, mj);
+      cols[j].resize(nd);
+      for (size_t r = 0; r < nd; ++r) {
+        const size_t i = rows.point[r];
+        cols[j][r] = mj[i] ? (ej[i] - e_out[i]) / h / rows.sigma[i] : 0;
+      }
+    });
+    evaluations += n;
+    for (size_t j = 0; j < n; ++j) {
+      for (size_t r = 0; r < nd; ++r) L.J(static_cast<Index>(r), static_cast<Index>(j)) = cols[j][r];
+      const auto& v = vars[j];
+      const double sig = v.sigma > 0 ? v.sigma : s.fit.weak_prior_range * (v.upper - v.lower);
+      L.J(static_cast<Index>(nd + j), static_cast<Index>(j)) = 1 / sig;
+      L.z[static_cast<Index>(nd + j)] = (S.x[j] - v.start) / sig;
+    }
+    return L;
+  };
+
+  // The data chi2 (used points) and the problem's priors at a state.
+  auto chi2_of = [&](const State& S, std::vector<double>* e_out, std::vector<unsigned char>* m_out) {
+    std::vector<unsigned char> m;
+    const std::vector<double> ev = residual(*S.prob, S.x, m);
+    ++evaluations;
+    double c = 0;
+    for (size_t i = 0; i < N; ++i)
+      if (!out.noise.outlier[i]) c += m[i] ? std::pow(ev[i] / rows.sigma[i], 2) : 100;  // a lost turn: 10 sigma
+    const auto& vars = S.prob->variables();
+    for (size_t j = 0; j < vars.size(); ++j)
+      if (vars[j].sigma > 0) c += std::pow((S.x[j] - vars[j].start) / vars[j].sigma, 2);
+    if (e_out) *e_out = ev;
+    if (m_out) *m_out = m;
+    return c;
+  };
+
+  // A candidate's signature columns at a state (data rows, in sigma per unit parameter), one
+  // evaluation per parameter; discrete candidates: the sum of their atoms' columns.
+  auto columns = [&](const State& S, const std::vector<double>& e0, const Candidate& c) -> std::vector<std::vector<double>> {
+    const size_t nd = rows.point.size();
+    std::vector<std::vector<double>> out_cols;
+    auto column_of = [&](std::vector<json> entries, double h) {
+      Machine v = S.prob->machine();
+      append_entries(v, entries);
+      const auto q = S.prob->with_machine(std::move(v), S.prob->variables(), S.x, true);
+      std::vector<unsigned char> m;
+      const std::vector<double> ev = residual(*q, S.x, m);
+      std::vector<double> col(nd);
+      for (size_t r = 0; r < nd; ++r) {
+        const size_t i = rows.point[r];
+        col[r] = m[i] ? (ev[i] - e0[i]) / h / rows.sigma[i] : 0;
+      }
+      return col;
+    };
+    if (c.discrete) {
+      out_cols.push_back(column_of(c.entries, 1));
+      return out_cols;
+    }
+    for (const auto& prm : c.params) {
+      std::vector<json> entries = c.entries;
+      for (size_t k : prm.entries) entries[k][prm.key] = prm.absent + prm.step;
+      out_cols.push_back(column_of(entries, prm.step));
+    }
+    return out_cols;
+  };
+
+  const double logN = std::log(static_cast<double>(std::max<size_t>(2, N)));
+  auto k_of = [](const Candidate& c) { return static_cast<int>(c.discrete ? 1 : c.params.size() + c.shape.size()); };
+  auto threshold = [&](int k) { return k * logN + s.margin; };
+
+  // Whether two candidates are the same effect (a refit of either ends in the other's valley):
+  // the same element, or for bumps the same n within a width, or overlapping coil groups of one parity.
+  auto same_effect = [](const Candidate& a, const Candidate& b) {
+    if (a.type != b.type) return false;
+    if (a.type == "field-harmonic") {
+      if (a.instance["n"] != b.instance["n"]) return false;
+      const bool ar = a.instance.contains("r_mm"), br = b.instance.contains("r_mm");
+      if (ar != br) return false;
+      if (!ar) return true;
+      const double w = std::max(a.instance["width_mm"].get<double>(), b.instance["width_mm"].get<double>());
+      return std::fabs(a.instance["r_mm"].get<double>() - b.instance["r_mm"].get<double>()) <= w;
+    }
+    if (a.type == "trimcoil-sectors") {
+      if (a.instance["sectors"] != b.instance["sectors"]) return false;
+      for (const auto& x : a.instance["coils"])
+        for (const auto& y : b.instance["coils"])
+          if (x == y) return true;
+      return false;
+    }
+    return a.instance == b.instance;
+  };
+  // Whether a candidate acts on an element a selected effect already uses (the machine file
+  // allows one effect of a kind per element).
+  auto clashes = [&](const Candidate& c, const std::vector<Selected>& sel) {
+    for (const auto& x : sel) {
+      if (c.type != x.cand->type) continue;
+      if (c.type == "field-harmonic") {
+        if (same_effect(c, *x.cand)) return true;
+        continue;
+      }
+      if (c.type == "trimcoil-sectors") {
+        for (const auto& a : c.instance["coils"])
+          for (const auto& b : x.cand->instance["coils"])
+            if (a == b) return true;
+        continue;
+      }
+      if (c.instance == x.cand->instance) return true;
+    }
+    return false;
+  };
+
+  std::vector<Selected> selected;
+  std::map<std::string, json> cand_report;  // label -> report row (the last round's screen)
+  std::vector<double> e_state;
+  Linear L;
+  MatrixXd atom_cols;  // data rows x atoms, at the current state
+
+  for (int round = 1;; ++round) {
+    L = linearize(st, e_state);
+    const size_t nd = L.data;
+    const Base base = base_of(L.J, L.z);
+    // Held-out folds: the base model fitted without each fold.
+    const int K = std::max(2, s.folds);
+    std::vector<std::vector<Index>> train(static_cast<size_t>(K)), test(static_cast<size_t>(K));
+    for (int f = 0; f < K; ++f) {
+      for (size_t r = 0; r < nd; ++r) (rows.fold[r] == f ? test : train)[static_cast<size_t>(f)].push_back(static_cast<Index>(r));
+      for (Index r = static_cast<Index>(nd); r < L.z.size(); ++r) train[static_cast<size_t>(f)].push_back(r);
+    }
+    std::vector<Base> fold_base;
+    double held_base = 0;
+    for (int f = 0; f < K; ++f) {
+      const auto& tr = train[static_cast<size_t>(f)];
+      const auto& te = test[static_cast<size_t>(f)];
+      fold_base.push_back(base_of(L.J(tr, Eigen::all), L.z(tr)));
+      const VectorXd delta = -fold_base.back().R.triangularView<Eigen::Upper>().solve(fold_base.back().Qtz);
+      held_base += (L.z(te) + L.J(te, Eigen::all) * delta).squaredNorm();
+    }
+    // Effective degrees of freedom: data rows less the trace of the data part of the hat matrix.
+    const double hat = base.Q.topRows(static_cast<Index>(nd)).squaredNorm();
+    // This state's figures: "before" in round 1, "after" whichever round the loop ends in.
+    {
+      double c2 = 0, ss = 0, linf = 0;
+      for (size_t r = 0; r < nd; ++r) {
+        const double d = e_state[rows.point[r]];
+        c2 += std::pow(d / rows.sigma[rows.point[r]], 2), ss += d * d, linf = std::max(linf, std::fabs(d));
+      }
+      out.after = {linf, std::sqrt(ss / static_cast<double>(nd)), c2, c2 / (static_cast<double>(nd) - hat),
+                   static_cast<double>(nd) - hat, held_base / static_cast<double>(nd), nd};
+    }
+    if (round == 1) {
+      out.before = out.after;
+      out.residual_before_mm = used_residual(e_state);
+      out.located_before = locate(meas, e_state, used_flags(e_state), out.noise, tunes, out.before.dof, s.margin);
+    }
+    if (static_cast<int>(selected.size()) >= s.max_effects) break;
+
+    // 3. Screen every candidate at this state.
+    log("round " + std::to_string(round) + ": screening at chi2/dof " +
+        cli::fmt(L.z.head(static_cast<Index>(nd)).squaredNorm() / (static_cast<double>(nd) - hat), 4));
+    const size_t n_atoms = cat.atoms.size();
+    std::vector<std::vector<double>> atom_col(n_atoms);
+    std::vector<const Candidate*> live;
+    for (const auto& c : cat.candidates)
+      if (!clashes(c, selected)) live.push_back(&c);
+    std::vector<std::vector<std::vector<double>>> cand_cols(live.size());
+    // One list of evaluations: atoms, then the continuous candidates' parameters.
+    std::vector<std::pair<int, size_t>> jobs;  // (-1, atom) or (candidate, 0)
+    std::set<size_t> atoms_needed;
+    for (size_t k = 0; k < live.size(); ++k) {
+      if (live[k]->discrete)
+        for (size_t a : live[k]->atoms) atoms_needed.insert(a);
+      else
+        jobs.push_back({static_cast<int>(k), 0});
+    }
+    for (size_t a : atoms_needed) jobs.push_back({-1, a});
+    parallel_for(jobs.size(), threads, [&](size_t j, unsigned) {
+      const auto [k, a] = jobs[j];
+      if (k < 0)
+        atom_col[a] = columns(st, e_state, cat.atoms[a])[0];
+      else
+        cand_cols[static_cast<size_t>(k)] = columns(st, e_state, *live[static_cast<size_t>(k)]);
+    });
+    for (size_t k = 0; k < live.size(); ++k) evaluations += live[k]->discrete ? 0 : live[k]->params.size();
+    evaluations += atoms_needed.size();
+
+    struct Row {
+      const Candidate* c;
+      Screen sc;
+      double held = 0;
+      MatrixXd C;
+    };
+    std::vector<Row> screened;
+    for (size_t k = 0; k < live.size(); ++k) {
+      const Candidate& c = *live[k];
+      Row row{&c, {}, 0, MatrixXd::Zero(L.z.size(), c.discrete ? 1 : static_cast<Index>(c.params.size()))};
+      if (c.discrete) {
+        bool ends_zero = false;
+        for (size_t q = 0; q < c.atoms.size(); ++q) {
+          double nrm = 0;
+          for (size_t r = 0; r < nd; ++r) {
+            row.C(static_cast<Index>(r), 0) += atom_col[c.atoms[q]][r];
+            nrm += atom_col[c.atoms[q]][r] * atom_col[c.atoms[q]][r];
+          }
+          // A group whose end coil has no field (no signature) is the shorter group again.
+          if ((q == 0 || q + 1 == c.atoms.size()) && nrm < 1e-12) ends_zero = true;
+        }
+        if (ends_zero) continue;
+      } else {
+        for (size_t q = 0; q < c.params.size(); ++q)
+          for (size_t r = 0; r < nd; ++r) row.C(static_cast<Index>(r), static_cast<Index>(q)) = cand_cols[k][q][r];
+      }
+      row.sc = screen_columns(base, row.C);
+      // Held-out gain: each fold predicted by base and candidate fitted without it.
+      for (int f = 0; f < K; ++f) {
+        const auto& tr = train[static_cast<size_t>(f)];
+        const auto& te = test[static_cast<size_t>(f)];
+        const Base& fb = fold_base[static_cast<size_t>(f)];
+        const MatrixXd Ct = row.C(tr, Eigen::all);
+        const MatrixXd PC = Ct - fb.Q * (fb.Q.transpose() * Ct);
+        const VectorXd cc = -PC.completeOrthogonalDecomposition().solve(fb.Pz);
+        const VectorXd d_base = -fb.R.triangularView<Eigen::Upper>().solve(fb.Qtz);
+        const VectorXd d_cand = -fb.R.triangularView<Eigen::Upper>().solve(fb.Qtz + fb.Q.transpose() * (Ct * cc));
+        const VectorXd zt = L.z(te);
+        row.held += (zt + L.J(te, Eigen::all) * d_base).squaredNorm() -
+                    (zt + L.J(te, Eigen::all) * d_cand + row.C(te, Eigen::all) * cc).squaredNorm();
+      }
+      screened.push_back(std::move(row));
+    }
+
+    // The report rows: scores, detection limits, absorption.
+    const MatrixXd Rinv = base.R.triangularView<Eigen::Upper>().solve(MatrixXd::Identity(base.R.rows(), base.R.cols()));
+    const VectorXd post_sigma = Rinv.rowwise().norm();  // sqrt(diag((J^T J)^-1))
+    const auto& vars = st.prob->variables();
+    for (const auto& row : screened) {
+      const Candidate& c = *row.c;
+      const int k = k_of(c);
+      json j = {{"label", c.label},
+                {"type", c.type},
+                {"instance", c.instance},
+                {"round", round},
+                {"delta_chi2", row.sc.dchi2},
+                {"delta_bic", row.sc.dchi2 - k * logN},
+                {"held_out_gain", row.held},
+                {"parameters_k", k},
+                {"visible_fraction", row.sc.visible}};
+      // Detection limit: the size whose signature, after the variables take up what they can,
+      // gains k ln N + margin in chi2 (the selection threshold).
+      const double T = threshold(k);
+      json lim = json::object();
+      if (c.discrete) {
+        const double m = row.sc.M(0, 0);
+        j["delta_chi2_if_present"] = m;
+        lim["scale"] = m > 0 ? jnum(std::sqrt(T / m)) : json(nullptr);
+        j["scale"] = row.sc.c[0];
+        j["scale_sigma"] = jnum(std::sqrt(row.sc.cov(0, 0)));
+      } else if (c.type == "field-harmonic" && c.params.size() == 2) {
+        Eigen::SelfAdjointEigenSolver<MatrixXd> es(row.sc.M);
+        const double lmin = es.eigenvalues()[0];
+        lim["amplitude_T"] = lmin > 0 ? jnum(std::sqrt(T / lmin)) : json(nullptr);
+        j["amplitude_T"] = std::hypot(row.sc.c[0], row.sc.c[1]);
+      } else {
+        for (size_t q = 0; q < c.params.size(); ++q) {
+          const double marg = row.sc.cov(static_cast<Index>(q), static_cast<Index>(q));
+          lim[c.params[q].key] = marg > 0 ? jnum(std::sqrt(T * marg)) : json(nullptr);
+          j[c.params[q].key] = row.sc.c[static_cast<Index>(q)];
+        }
+      }
+      j["detection_limit"] = lim;
+      // What would absorb it: the variables' moves that take up the signature of the effect at
+      // its detection limit, in units of their uncertainty, largest first.
+      {
+        VectorXd a(row.C.cols());
+        if (c.discrete)
+          a[0] = 1;
+        else if (c.type == "field-harmonic" && c.params.size() == 2) {
+          Eigen::SelfAdjointEigenSolver<MatrixXd> es(row.sc.M);
+          a = es.eigenvectors().col(0) * (lim["amplitude_T"].is_number() ? lim["amplitude_T"].get<double>() : 0);
+        } else {
+          for (size_t q = 0; q < c.params.size(); ++q)
+            a[static_cast<Index>(q)] = lim[c.params[q].key].is_number() ? lim[c.params[q].key].get<double>() : 0;
+        }
+        const VectorXd move = -base.R.triangularView<Eigen::Upper>().solve(base.Q.transpose() * (row.C * a));
+        std::vector<std::pair<double, size_t>> order;
+        for (Index q = 0; q < move.size(); ++q) order.push_back({std::fabs(move[q]) / post_sigma[q], static_cast<size_t>(q)});
+        std::sort(order.rbegin(), order.rend());
+        json by = json::array();
+        for (size_t q = 0; q < std::min<size_t>(4, order.size()); ++q)
+          if (order[q].first > 1)
+            by.push_back({{"variable", vars[order[q].second].name},
+                          {"move", move[static_cast<Index>(order[q].second)]},
+                          {"unit", vars[order[q].second].unit},
+                          {"sigmas", order[q].first}});
+        j["absorbed_by"] = by;
+      }
+      const bool passes = row.sc.dchi2 > T && row.held > 0;
+      // Absorbed: the variables take up 95 % or more of its signature (its limit is then 4.5
+      // times or more what it would be without them).
+      {
+        const double alone = row.C.squaredNorm();
+        j["limit_without_variables"] = alone > 0 ? jnum(std::sqrt(T / alone)) : json(nullptr);
+      }
+      j["status"] = passes ? "candidate" : (row.sc.visible < 0.05 ? "absorbed" : "not-seen");
+      cand_report[c.label] = j;
+    }
+
+    // Nothing-missing: the residual is consistent with noise (no located shape, no significant
+    // chi2) and no catalogue signature passes even in the linear screen.
+    bool any_pass = false;
+    for (const auto& row : screened) any_pass = any_pass || (row.sc.dchi2 > threshold(k_of(*row.c)) && row.held > 0);
+    if (round == 1 && !out.located_before.significant && !any_pass) {
+      log("the residual is consistent with noise and no candidate passes: nothing missing");
+      break;
+    }
+
+    // 4. Refit the strongest distinct candidates nonlinearly.
+    std::vector<const Row*> order;
+    for (const auto& row : screened)
+      if (row.sc.dchi2 > 0.5 * threshold(k_of(*row.c))) order.push_back(&row);
+    std::sort(order.begin(), order.end(), [&](const Row* a, const Row* b) {
+      return a->sc.dchi2 - k_of(*a->c) * logN > b->sc.dchi2 - k_of(*b->c) * logN;
+    });
+    std::vector<const Row*> picks;
+    for (const Row* r : order) {
+      if (static_cast<int>(picks.size()) >= s.refits) break;
+      bool dup = false;
+      for (const Row* q : picks) dup = dup || same_effect(*q->c, *r->c);
+      if (!dup) picks.push_back(r);
+    }
+    if (picks.empty()) break;
+    const double chi2_now = chi2_of(st, nullptr, nullptr);
+    struct Refit {
+      const Row* row;
+      State state;
+      Selected sel;
+      double dchi2 = 0, dbic = 0;
+      LocalSearchResult r;
+    };
+    std::vector<Refit> refits;
+    json round_rep = {{"round", round}, {"chi2", chi2_now}, {"refits", json::array()}};
+    for (const Row* row : picks) {
+      const Candidate& c = *row->c;
+      Refit rf;
+      rf.row = row;
+      Machine v = st.prob->machine();
+      std::vector<json> entries = c.entries;
+      // Start values: the linear estimate (clamped), so that the shape has a signature to move.
+      std::vector<double> start_vals;
+      for (size_t q = 0; q < c.params.size(); ++q) {
+        const double val = clamp(c.params[q].absent + row->sc.c[static_cast<Index>(q)], c.params[q].lower, c.params[q].upper);
+        start_vals.push_back(val);
+        for (size_t k : c.params[q].entries) entries[k][c.params[q].key] = val;
+      }
+      const size_t first = append_entries(v, entries);
+      std::vector<TurnVariable> nv = st.prob->variables();
+      std::vector<double> x = st.x;
+      // The variables' linear moves toward the joint optimum, within bounds.
+      const VectorXd dx = -base.R.triangularView<Eigen::Upper>().solve(base.Qtz + base.Q.transpose() * (row->C * row->sc.c));
+      for (size_t q = 0; q < x.size(); ++q) x[q] = clamp(x[q] + dx[static_cast<Index>(q)], nv[q].lower, nv[q].upper);
+      const std::string tag = "fx" + std::to_string(selected.size() + 1) + ".";
+      auto bind = [&](const EffectParam& prm, size_t q, double value) {
+        DesignVariable dv;
+        dv.name = tag + prm.key + (c.params.size() > 1 && prm.key == "amplitude_T" ? "." + std::to_string(q) : "");
+        dv.unit = prm.unit;
+        dv.description = c.label;
+        for (size_t k : prm.entries) dv.targets.push_back({pointer(first + k, prm.key), 1.0, false});
+        dv.lower = prm.lower;
+        dv.upper = prm.upper;
+        v.dvars[dv.name] = dv;
+        TurnVariable tv;
+        tv.name = dv.name;
+        tv.unit = dv.unit;
+        tv.lower = dv.lower;
+        tv.upper = dv.upper;
+        tv.start = prm.absent;
+        tv.sigma = 0.5 * (prm.upper - prm.lower);
+        rf.sel.param_vars.push_back(nv.size());
+        nv.push_back(tv);
+        x.push_back(value);
+      };
+      if (!c.discrete) {
+        for (size_t q = 0; q < c.params.size(); ++q) bind(c.params[q], q, start_vals[q]);
+        for (size_t q = 0; q < c.shape.size(); ++q) bind(c.shape[q], q, c.shape[q].absent);
+      }
+      rf.sel.cand = &c;
+      rf.sel.first_entry = first;
+      std::vector<double> shift_x = st.x;
+      shift_x.resize(x.size());
+      for (size_t q = st.x.size(); q < x.size(); ++q) shift_x[q] = x[q];
+      rf.state.prob = st.prob->with_machine(std::move(v), nv, shift_x, true);
+      rf.state.n_problem = st.n_problem;
+      try {
+        rf.r = local_search(*rf.state.prob, x, rs);
+      } catch (const Error& err) {
+        round_rep["refits"].push_back({{"label", c.label}, {"error", err.what()}});
+        continue;
+      }
+      evaluations += rf.r.evaluations;
+      rf.state.x = rf.r.x;
+      const double c2 = chi2_of(rf.state, nullptr, nullptr);
+      rf.dchi2 = chi2_now - c2;
+      rf.dbic = rf.dchi2 - k_of(c) * logN;
+      log("  refit " + c.label + ": delta chi2 " + cli::fmt(rf.dchi2, 5) + " (linear " + cli::fmt(row->sc.dchi2, 5) +
+          "), held-out gain " + cli::fmt(row->held, 4));
+      round_rep["refits"].push_back({{"label", c.label},
+                                     {"delta_chi2", rf.dchi2},
+                                     {"delta_bic", rf.dbic},
+                                     {"linear_delta_chi2", row->sc.dchi2},
+                                     {"held_out_gain", row->held},
+                                     {"evaluations", rf.r.evaluations},
+                                     {"jacobians", rf.r.jacobians},
+                                     {"iterations", rf.r.iterations},
+                                     {"passes", rf.r.sigma_passes},
+                                     {"termination", rf.r.termination}});
+      cand_report[c.label]["refit"] = {{"delta_chi2", rf.dchi2}, {"delta_bic", rf.dbic}};
+      refits.push_back(std::move(rf));
+    }
+    // 5. Select: the largest Delta BIC that earns its parameters (beyond the margin) and
+    // predicts held-out turns better; close competitors are ambiguous.
+    Refit* best = nullptr;
+    for (auto& rf : refits)
+      if (rf.dbic > s.margin && rf.row->held > 0 && (!best || rf.dbic > best->dbic)) best = &rf;
+    if (!best) {
+      round_rep["chosen"] = nullptr;
+      out.rounds.push_back(round_rep);
+      log("  no candidate earns its parameters: stop");
+      break;
+    }
+    json competitors = json::array();
+    for (auto& rf : refits)
+      if (&rf != best && rf.dbic > s.margin && rf.row->held > 0 && best->dbic - rf.dbic < s.ambiguity &&
+          !same_effect(*rf.row->c, *best->row->c))
+        competitors.push_back({{"label", rf.row->c->label},
+                               {"type", rf.row->c->type},
+                               {"instance", rf.row->c->instance},
+                               {"delta_bic", rf.dbic}});
+    round_rep["chosen"] = best->row->c->label;
+    out.rounds.push_back(round_rep);
+    cand_report[best->row->c->label]["status"] = competitors.empty() ? "selected" : "selected-ambiguous";
+    for (const auto& comp : competitors) cand_report[comp["label"].get<std::string>()]["status"] = "ambiguous";
+    log("  selected " + best->row->c->label + (competitors.empty() ? "" : " (ambiguous with " + std::to_string(competitors.size()) + ")"));
+
+    // The selected effect's entry for the report, from the refit's values and uncertainties.
+    Selected sel = best->sel;
+    const LocalSearchResult& r = best->r;
+    const Candidate& c = *best->row->c;
+    json entry = {{"type", c.type}};
+    json sig = json::object();
+    for (auto it = c.instance.begin(); it != c.instance.end(); ++it) entry[it.key()] = it.value();
+    auto var_at = [&](size_t q) -> const FittedVariable& { return r.variables[sel.param_vars[q]]; };
+    if (c.type == "field-harmonic") {
+      const int n = c.instance["n"].get<int>();
+      if (n == 0) {
+        entry["amplitude_T"] = var_at(0).value;
+        sig["amplitude_T"] = var_at(0).sigma;
+        entry["phase_deg"] = 0.0;
+      } else {
+        const double ac = var_at(0).value, as = var_at(1).value, sc = var_at(0).sigma, ss = var_at(1).sigma;
+        const double rho = r.correlation(static_cast<Index>(sel.param_vars[0]), static_cast<Index>(sel.param_vars[1]));
+        const double A = std::hypot(ac, as);
+        // amplitude and phase of A cos(n (theta - phi)) = ac cos(n theta) + as sin(n theta);
+        // first-order error propagation with the correlation of ac and as.
+        const double dA_dc = A > 0 ? ac / A : 0, dA_ds = A > 0 ? as / A : 0;
+        const double dp_dc = A > 0 ? -as / (A * A) / n : 0, dp_ds = A > 0 ? ac / (A * A) / n : 0;
+        const double cov = rho * sc * ss;
+        entry["amplitude_T"] = A;
+        entry["phase_deg"] = norm_angle(std::atan2(as, ac) / n * 180 / M_PI, 360.0 / n);
+        sig["amplitude_T"] = std::sqrt(dA_dc * dA_dc * sc * sc + dA_ds * dA_ds * ss * ss + 2 * dA_dc * dA_ds * cov);
+        sig["phase_deg"] =
+            std::sqrt(dp_dc * dp_dc * sc * sc + dp_ds * dp_ds * ss * ss + 2 * dp_dc * dp_ds * cov) * 180 / M_PI;
+      }
+      if (!c.shape.empty()) {
+        const size_t q0 = c.params.size();
+        entry["r_mm"] = var_at(q0).value;
+        entry["width_mm"] = var_at(q0 + 1).value;
+        sig["r_mm"] = var_at(q0).sigma;
+        sig["width_mm"] = var_at(q0 + 1).sigma;
+      }
+    } else if (!c.discrete) {
+      for (size_t q = 0; q < c.params.size(); ++q) {
+        entry[c.params[q].key] = var_at(q).value;
+        sig[c.params[q].key] = var_at(q).sigma;
+      }
+      if (c.type == "voltage-tilt") entry["pivot_rho_n"] = 0.5;
+    }
+    json eff = {{"type", c.type},
+                {"parameters", entry},
+                {"sigma", sig},
+                {"label", c.label},
+                {"delta_chi2", best->dchi2},
+                {"delta_bic", best->dbic},
+                {"held_out_gain", best->row->held},
+                {"ambiguous", !competitors.empty()}};
+    eff["parameters"].erase("type");
+    if (c.discrete) eff["evidence"] = {{"scale", best->row->sc.c[0]}, {"scale_sigma", std::sqrt(best->row->sc.cov(0, 0))}};
+    out.effects.push_back(eff);
+    if (!competitors.empty()) out.ambiguous.push_back({{"selected", c.label}, {"effects", competitors}});
+    // Its signature at the fitted size, with the variables' share taken off (linear).
+    sel.signature_mm.assign(N, std::nan(""));
+    {
+      const MatrixXd PC = best->row->C - base.Q * (base.Q.transpose() * best->row->C);
+      const VectorXd sgn = -(PC * best->row->sc.c);
+      for (size_t rr = 0; rr < nd; ++rr) sel.signature_mm[rows.point[rr]] = sgn[static_cast<Index>(rr)] * rows.sigma[rows.point[rr]];
+    }
+    sel.screen = eff;
+    selected.push_back(std::move(sel));
+    st = std::move(best->state);
+  }
+
+  // The final state.
+  out.x_after.assign(st.x.begin(), st.x.begin() + static_cast<long>(st.n_problem));
+  out.residual_after_mm = used_residual(e_state);
+  out.located_after = locate(meas, e_state, used_flags(e_state), out.noise, tunes, out.after.dof, s.margin);
+  for (const auto& sel : selected) out.signatures_mm.push_back(sel.signature_mm);
+  // The machine: the problem's machine at the fitted design variables, with the effects as
+  // single machine-file entries (a bump's two quadratures as one amplitude and phase).
+  {
+    Machine m = p.machine_at(out.x_after);
+    json doc = m.doc;
+    if (!doc.contains("effects")) doc["effects"] = json::array();
+    for (const auto& eff : out.effects) {
+      json entry = eff["parameters"];
+      entry["type"] = eff["type"];
+      entry["description"] = "found by turnfit-diagnose (" + eff["label"].get<std::string>() + ")";
+      doc["effects"].push_back(entry);
+    }
+    out.machine_after = doc;
+  }
+  const auto& vars = st.prob->variables();
+  for (size_t j = 0; j < st.n_problem; ++j)
+    out.variables_after.push_back({{"name", vars[j].name},
+                                   {"unit", vars[j].unit},
+                                   {"base", out.x_base[j]},
+                                   {"value", st.x[j]},
+                                   {"start", vars[j].start}});
+  for (auto& [label, j] : cand_report) out.candidates.push_back(j);
+  std::sort(out.candidates.begin(), out.candidates.end(),
+            [](const json& a, const json& b) { return a["delta_bic"].get<double>() > b["delta_bic"].get<double>(); });
+
+  if (out.effects.empty())
+    out.verdict = out.located_before.significant ? "unexplained" : "nothing-missing";
+  else
+    out.verdict = "missing-physics";
+  out.evaluations = evaluations;
+  out.wall_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t_start).count();
+  return out;
+}
+
+}  // namespace turnfit

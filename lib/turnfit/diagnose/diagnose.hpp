@@ -1,0 +1,155 @@
+// Diagnosis of a turn-pattern mismatch (turnfit-diagnose): after a fit of the design variables,
+// where the residual lies and what shape it has, which effect of the catalogue
+// (turnfit-machine(5) EFFECTS) explains it, modelled and refitted, with detection limits.
+#pragma once
+
+#include <Eigen/Dense>
+#include <functional>
+#include <nlohmann/json.hpp>
+#include <string>
+#include <vector>
+
+#include "turnfit/optimize/localsearch.hpp"
+#include "turnfit/optimize/turn_problem.hpp"
+
+namespace turnfit {
+
+/// One free parameter of a candidate effect, bound to keys of its machine-file entries.
+struct EffectParam {
+  std::string key;              ///< turnfit-machine(5) key it sets ("amplitude_T", "relative", ...)
+  std::string unit;
+  std::vector<size_t> entries;  ///< the candidate's entries it sets (the same value in each)
+  double step = 0;              ///< finite-difference step of its linear signature
+  double lower = 0, upper = 0;  ///< bounds in a refit
+  double absent = 0;            ///< the value at which the effect is absent (or its shape's start)
+};
+
+/// A candidate: one effect of the catalogue at one place, with its free parameters.
+struct Candidate {
+  std::string type;                    ///< turnfit-machine(5) type
+  std::string label;                   ///< for people: "field-harmonic n=1 at 3100 mm (width 500 mm)"
+  nlohmann::json instance;             ///< what fixes the place: n, r_mm, width_mm, sector, cavity, probe, coils, sectors
+  std::vector<nlohmann::json> entries; ///< machine-file effect entries, free keys at their absent values
+  std::vector<EffectParam> params;     ///< linear parameters: screened, and fitted in a refit
+  std::vector<EffectParam> shape;      ///< further parameters freed in the nonlinear refit (a bump's r_mm, width_mm)
+  /// trimcoil-sectors: no continuous parameter; the entry is on or off and its signature is
+  /// the sum of its coils' single-coil signatures (`atoms`, indices into the atom list).
+  bool discrete = false;
+  std::vector<size_t> atoms;
+};
+
+/// The catalogue of effects (turnfit-machine(5) EFFECTS) as candidates for this problem:
+/// field-harmonic n = 0, 1, 2 on a grid of radii and widths over the measured radii (and
+/// n = 1, 2 at every radius), sector-strength of each sector, gap-bow and voltage-tilt of each
+/// cavity, probe-offset of each measured probe and injection-offset, each with only the
+/// parameters no problem variable already sets (`not_candidates` gets the rest, with the
+/// variables that represent them), and trimcoil-sectors of contiguous coil groups on the odd or
+/// the even sectors (their atoms: one per coil and parity, `atoms` below). `types` limits the
+/// types (empty: all). Effects the machine already has on the same element are not candidates.
+struct Catalogue {
+  std::vector<Candidate> candidates;
+  std::vector<Candidate> atoms;           ///< trimcoil-sectors of single coils (the groups' building blocks)
+  nlohmann::json not_candidates = nlohmann::json::array();  ///< [{type, instance, reason, variables}]
+};
+Catalogue effect_catalogue(const TurnPatternProblem& p, const std::vector<std::string>& types);
+
+/// Every effect type of the catalogue, in report order.
+const std::vector<std::string>& catalogue_types();
+
+/// The per-probe noise of a residual estimated from its own scatter, free of smooth structure:
+/// second differences along consecutive turns, d_i = e_{i-1} - 2 e_i + e_{i+1}, have variance
+/// s_{i-1}^2 + 4 s_i^2 + s_{i+1}^2 with s_i^2 = s_p^2 + u_i^2 (u_i the peak's own uncertainty,
+/// peakfind's r_err_mm, 0 without it). s_p is found by the method of moments on the median
+/// (robust to single bad peaks): the median of d_i^2 / var_i is that of chi2 with one degree of
+/// freedom, 0.4549. A smooth trend (any polynomial of degree 1 over three turns) leaves no
+/// second difference; an oscillation of q cycles per turn is amplified by 4 sin^2(pi q).
+struct NoiseEstimate {
+  std::vector<std::string> probes;
+  std::vector<double> scatter_mm;     ///< s_p per probe
+  std::vector<size_t> differences;    ///< second differences it rests on
+  std::vector<double> sigma_mm;       ///< per measured point: sqrt(s_p^2 + u_i^2)
+  std::vector<unsigned char> outlier; ///< per point: single outliers (beyond 5 sigma of the running median of 5)
+};
+NoiseEstimate estimate_noise(const TurnTable& measured, const std::vector<double>& residual_mm,
+                             const std::vector<unsigned char>& matched, double floor_mm = 1e-4);
+
+/// Radial tune against the radius of the closed orbit (its mean radius), for the oscillation
+/// search: closed orbits of the machine's field at energies over its radius range.
+struct TuneTable {
+  std::vector<double> r_mm, nu_r;
+  /// nu_r at radius r (linear interpolation, held at the ends); NaN when the table is empty.
+  double at(double r_mm) const;
+};
+TuneTable radial_tunes(const Machine& m, unsigned threads);
+
+/// Where a residual is significant and what shape it has, per probe: an offset, a smooth trend
+/// (Legendre polynomials in turn number, degree by BIC), a coherent oscillation at the radial
+/// tune's fractional frequency (phase advance 2 pi nu_r(r) a turn, amplitude linear in the
+/// turn), a step, single outliers, and the turn and radius ranges where the smoothed residual
+/// exceeds its noise. Each shape's significance is its chi2 gain against the noise, beyond
+/// `threshold` plus k ln N (k its parameters). Returns the JSON list and whether anything was
+/// significant; chi2 and dof over the used points.
+struct Located {
+  nlohmann::json findings = nlohmann::json::array();
+  bool significant = false;
+  double chi2 = 0;
+  size_t points = 0;
+  double chi2_p_value = 1;  ///< of chi2 against its degrees of freedom (Wilson-Hilferty)
+};
+Located locate(const TurnTable& measured, const std::vector<double>& residual_mm,
+               const std::vector<unsigned char>& matched, const NoiseEstimate& noise, const TuneTable& tunes,
+               double dof, double threshold);
+
+/// How the diagnosis runs.
+struct DiagnoseSettings {
+  unsigned threads = 0;
+  std::vector<std::string> types;   ///< effect types to try (empty: all)
+  LocalSearchSettings fit;          ///< the base fit (localsearch's defaults, no minimax polish)
+  /// Extra chi2 an effect must gain beyond BIC's k ln N (look-elsewhere over ~100 candidates:
+  /// a k = 2 candidate on pure noise passes k ln N + 10 with probability ~3e-5).
+  double margin = 10;
+  double ambiguity = 6;             ///< Delta BIC within which a competitor is ambiguous (Kass and Raftery: "strong" evidence)
+  int max_effects = 4;
+  int refits = 3;                   ///< nonlinear refits of the strongest distinct candidates per round
+  int folds = 5;                    ///< interleaved held-out folds
+  bool verbose = false;
+  std::function<void(const std::string&)> log;  ///< progress lines (may be empty)
+};
+
+/// A fit's figures with the diagnosis's noise.
+struct FitFigures {
+  double linf_mm = 0, rms_mm = 0, chi2 = 0, chi2_per_dof = 0, dof = 0;
+  double held_out_chi2_per_point = 0;  ///< cross-validated (linearized, interleaved folds)
+  size_t points = 0;
+};
+
+/// What the diagnosis found (the report's content; the app writes it).
+struct Diagnosis {
+  std::string verdict;                 ///< nothing-missing | missing-physics | unexplained
+  NoiseEstimate noise;
+  Located located_before, located_after;
+  nlohmann::json effects = nlohmann::json::array();     ///< selected: machine-file entries with sigma and scores
+  nlohmann::json ambiguous = nlohmann::json::array();
+  nlohmann::json candidates = nlohmann::json::array();  ///< every candidate tried, with its scores
+  nlohmann::json not_candidates = nlohmann::json::array();
+  nlohmann::json rounds = nlohmann::json::array();      ///< greedy rounds: refits and choice
+  nlohmann::json variables_after = nlohmann::json::array();  ///< design variables of the final fit
+  FitFigures before, after;
+  LocalSearchResult base_fit;          ///< the base fit of the design variables
+  std::vector<double> x_base;          ///< its design (with the diagnosis's noise)
+  std::vector<double> x_after;         ///< the design variables after the refit with the effects
+  nlohmann::json machine_after;        ///< the machine document with the effects and x_after
+  std::vector<double> residual_before_mm, residual_after_mm;  ///< per measured point (NaN: unmatched)
+  /// Per selected effect: its own signature at the fitted size [mm] per measured point (the
+  /// after-model minus the after-model without it, design variables refitted linearly).
+  std::vector<std::vector<double>> signatures_mm;
+  size_t evaluations = 0;
+  double wall_s = 0;
+};
+
+/// Diagnoses problem p from design x0: base fit, noise, locate, screen every candidate in the
+/// model linearized at the fit, refit the strongest nonlinearly, select greedily by BIC and
+/// held-out gain, refit. EX_DATAERR if x0 cannot be simulated.
+Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const DiagnoseSettings& s);
+
+}  // namespace turnfit

@@ -1,0 +1,435 @@
+// turnfit-diagnose as a library (see diagnose_app.hpp).
+#include "turnfit/diagnose/diagnose_app.hpp"
+
+#include <cmath>
+#include <filesystem>
+#include <iostream>
+#include <memory>
+#include <sstream>
+
+#include "turnfit/io/error.hpp"
+#include "turnfit/io/output.hpp"
+#include "turnfit/optimize/localsearch_app.hpp"
+#include "turnfit/optimize/problem_file.hpp"
+#include "turnfit/plot/figure.hpp"
+
+namespace turnfit {
+
+using nlohmann::json;
+
+void add_diagnose_options(CLI::App& app, DiagnoseOptions& o) {
+  app.description(
+      "Diagnoses a turn-pattern mismatch (turnfit-problem(5): machine, measured peaks, variables): fits the\n"
+      "design variables, estimates the noise from the residual itself, locates where the residual departs\n"
+      "from noise and how (offset, trend, oscillation at the radial tune, step, outliers), screens every\n"
+      "effect of turnfit-machine(5) EFFECTS that no variable represents, refits the strongest, selects by\n"
+      "BIC and held-out turns, and reports what is missing (turnfit-diagnosis(5)) with detection limits.");
+  app.add_option("problem", o.problem, "Turn-pattern problem file (turnfit-problem/1 with a machine)")->required();
+  app.add_option("--start", o.start,
+                 "Start of the base fit: a dvars file {name: value}, a turnfit-nsga front or population log "
+                 "(default: the machine's values)");
+  app.add_option("--pick", o.pick, "Design of a front or log to start from: linf or sum")
+      ->check(CLI::IsMember({"linf", "sum"}));
+  app.add_option("--effects", o.effects,
+                 "Effect types to try: all (default) or a comma list of field-harmonic, sector-strength, "
+                 "trimcoil-sectors, gap-bow, voltage-tilt, probe-offset, injection-offset");
+  app.add_option("--markdown", o.markdown, "Write the report for people (Markdown) here");
+  app.add_option("--machine-out", o.machine_out,
+                 "Write the machine with the effects found and the fitted design variables here");
+  app.add_option("--figures", o.figures,
+                 "Write figures here (PNG with data and gnuplot script): residuals before and after, "
+                 "each effect's signature");
+  app.add_option("--margin", o.settings.margin,
+                 "Chi2 an effect must gain beyond BIC's k ln N (default 10: look-elsewhere over the catalogue)")
+      ->check(CLI::Range(0.0, 1e6));
+  app.add_option("--max-effects", o.settings.max_effects, "Effects selected at most (default 4)")
+      ->check(CLI::Range(1, 20));
+  app.add_option("--refits", o.settings.refits, "Candidates refitted nonlinearly per round (default 3)")
+      ->check(CLI::Range(1, 50));
+  app.add_option("--folds", o.settings.folds, "Interleaved held-out folds (default 5)")->check(CLI::Range(2, 50));
+  cli::add_common_options(app, o.common, cli::kOutput | cli::kThreads);
+}
+
+std::vector<std::string> parse_effect_types(const std::string& spec) {
+  if (spec == "all" || spec.empty()) return {};
+  std::vector<std::string> out;
+  std::stringstream ss(spec);
+  std::string t;
+  const auto& known = catalogue_types();
+  while (std::getline(ss, t, ',')) {
+    if (std::find(known.begin(), known.end(), t) == known.end()) {
+      std::string list;
+      for (const auto& k : known) list += (list.empty() ? "" : ", ") + k;
+      throw usage_error("--effects: unknown effect type '" + t + "' (known: all, " + list + ")");
+    }
+    if (std::find(out.begin(), out.end(), t) == out.end()) out.push_back(t);
+  }
+  if (out.empty()) throw usage_error("--effects: give all or effect types separated by commas");
+  return out;
+}
+
+namespace {
+
+std::string shown(const std::string& path) { return path == "-" ? "<stdin>" : path; }
+
+json jnum(double v) { return std::isfinite(v) ? json(v) : json(nullptr); }
+
+json figures_json(const FitFigures& f) {
+  return {{"linf_mm", jnum(f.linf_mm)},
+          {"rms_mm", jnum(f.rms_mm)},
+          {"chi2", jnum(f.chi2)},
+          {"dof", jnum(f.dof)},
+          {"chi2_per_dof", jnum(f.chi2_per_dof)},
+          {"held_out_chi2_per_point", jnum(f.held_out_chi2_per_point)},
+          {"points", f.points}};
+}
+
+std::string num(const json& j, int digits = 3) {
+  if (!j.is_number()) return "-";
+  return cli::fmt(j.get<double>(), digits);
+}
+
+}  // namespace
+
+json diagnosis_report(const TurnPatternProblem& p, const Diagnosis& d, const std::string& start, bool provenance) {
+  json j;
+  j["format"] = "turnfit-diagnosis/1";
+  if (provenance) j["provenance"] = cli::provenance();
+  j["problem"] = p.file();
+  j["machine"] = p.machine().path;
+  j["start"] = start.empty() ? "the machine's values" : shown(start);
+  j["verdict"] = d.verdict;
+  j["effects"] = d.effects;
+  j["ambiguous"] = d.ambiguous;
+  json located = json::array();
+  for (const auto& f : d.located_before.findings) located.push_back(f);
+  j["located"] = located;
+  j["located_after"] = d.located_after.findings;
+  j["candidates"] = d.candidates;
+  j["not_candidates"] = d.not_candidates;
+  j["before"] = figures_json(d.before);
+  j["after"] = figures_json(d.after);
+  json noise = json::object();
+  for (size_t k = 0; k < d.noise.probes.size(); ++k)
+    noise[d.noise.probes[k]] = {{"scatter_mm", d.noise.scatter_mm[k]},
+                                {"second_differences", d.noise.differences[k]},
+                                {"source", "median of the residual's second differences along consecutive turns, "
+                                           "with the peaks' own r_err_mm in quadrature"}};
+  size_t outliers = 0;
+  for (unsigned char o : d.noise.outlier) outliers += o != 0;
+  j["noise"] = {{"probes", noise}, {"outliers", outliers}};
+  // The base fit: localsearch's least squares with its own sigma, then refitted with the noise.
+  json base = {{"evaluations", d.base_fit.evaluations},
+               {"chi2_dof_localsearch", jnum(d.base_fit.chi2_dof)},
+               {"linf_mm", jnum(d.base_fit.after.linf_mm)},
+               {"rms_mm", jnum(d.base_fit.after.rms_mm)},
+               {"sigma_source", d.base_fit.sigma_source}};
+  j["base_fit"] = base;
+  json vars = json::object(), before = json::object();
+  for (size_t k = 0; k < d.x_after.size(); ++k) {
+    vars[p.variables()[k].name] = d.x_after[k];
+    before[p.variables()[k].name] = d.x_base[k];
+  }
+  j["dvars_before"] = before;
+  j["dvars_after"] = vars;
+  j["rounds"] = d.rounds;
+  j["evaluations"] = d.evaluations;
+  j["wall_s"] = d.wall_s;
+  return j;
+}
+
+std::string diagnosis_markdown(const TurnPatternProblem& p, const json& r) {
+  std::ostringstream md;
+  md << "# Diagnosis of " << p.file() << "\n\n";
+  const std::string v = r["verdict"];
+  md << "**Verdict: " << v << "**";
+  if (v == "nothing-missing")
+    md << ": after the fit of the design variables the residual is consistent with its noise, and no effect "
+          "of the catalogue would gain enough to earn its parameters.";
+  else if (v == "missing-physics")
+    md << ": " << r["effects"].size() << " effect" << (r["effects"].size() == 1 ? "" : "s")
+       << " the model lacks, named below, modelled and refitted.";
+  else
+    md << ": the residual is significant, but no effect of the catalogue explains it. Where it lies is below.";
+  md << "\n\n";
+
+  md << "## Fit before and after\n\n| | worst turn [mm] | RMS [mm] | chi2/dof | held-out chi2/point |\n|---|---|---|---|---|\n";
+  for (const char* k : {"before", "after"})
+    md << "| " << k << " | " << num(r[k]["linf_mm"]) << " | " << num(r[k]["rms_mm"]) << " | "
+       << num(r[k]["chi2_per_dof"]) << " | " << num(r[k]["held_out_chi2_per_point"]) << " |\n";
+  md << "\nNoise, estimated from the residual's second differences (peak uncertainties added in quadrature):";
+  for (auto it = r["noise"]["probes"].begin(); it != r["noise"]["probes"].end(); ++it)
+    md << " " << it.key() << " " << num(it.value()["scatter_mm"]) << " mm;";
+  md << " " << r["noise"]["outliers"] << " single outlier(s) left out.\n\n";
+
+  if (!r["effects"].empty()) {
+    md << "## Missing physics\n\n";
+    for (const auto& e : r["effects"]) {
+      md << "- **" << e["label"].get<std::string>() << "**" << (e["ambiguous"].get<bool>() ? " (ambiguous, see below)" : "")
+         << ": ";
+      std::string sep;
+      for (auto it = e["parameters"].begin(); it != e["parameters"].end(); ++it) {
+        md << sep << it.key() << " = ";
+        if (it.value().is_number()) {
+          md << num(it.value(), 4);
+          if (e["sigma"].contains(it.key())) md << " +- " << num(e["sigma"][it.key()], 2);
+        } else {
+          md << it.value().dump();
+        }
+        sep = ", ";
+      }
+      md << "; delta chi2 " << num(e["delta_chi2"], 4) << ", delta BIC " << num(e["delta_bic"], 4)
+         << ", held-out gain " << num(e["held_out_gain"], 4) << ".\n";
+      json entry = e["parameters"];
+      entry["type"] = e["type"];
+      md << "  Machine-file entry: `" << entry.dump() << "`\n";
+    }
+    md << "\n";
+  }
+  if (!r["ambiguous"].empty()) {
+    md << "## Ambiguous\n\nThese explain the residual about as well (delta BIC within 6):\n\n";
+    for (const auto& a : r["ambiguous"]) {
+      md << "- " << a["selected"].get<std::string>() << " against";
+      for (const auto& c : a["effects"]) md << " " << c["label"].get<std::string>() << " (delta BIC " << num(c["delta_bic"], 4) << ");";
+      md << "\n";
+    }
+    md << "\n";
+  }
+  md << "## Where the residual lies (after the base fit)\n\n";
+  size_t shown_n = 0;
+  for (const auto& f : r["located"]) {
+    if (f["kind"] == "overall") {
+      md << "- overall: chi2 " << num(f["chi2"], 4) << " on " << num(f["dof"], 4) << " degrees of freedom (p = "
+         << num(f["p_value"], 2) << ")" << (f["significant"].get<bool>() ? ", significant" : ", consistent with noise")
+         << "\n";
+      continue;
+    }
+    if (!f.contains("text") || !f.value("significant", false)) continue;
+    md << "- " << f["probe"].get<std::string>() << ": " << f["text"].get<std::string>() << " (delta chi2 "
+       << num(f.contains("delta_chi2") ? f["delta_chi2"] : f["chi2"], 4) << ")\n";
+    ++shown_n;
+  }
+  if (shown_n == 0) md << "- no offset, trend, oscillation, step or region beyond the noise\n";
+  for (const auto& f : r["located"])
+    if (f["kind"] == "outlier")
+      md << "- " << f["probe"].get<std::string>() << ": " << f["text"].get<std::string>() << "\n";
+  md << "\n";
+
+  // Detection limits, per type: the smallest and largest over the type's instances.
+  md << "## What was checked, and what would have been seen\n\n"
+        "Detection limit: the size whose signature, after the design variables take up what they can, "
+        "would pass the selection threshold (k ln N + margin in chi2) at this noise.\n\n"
+        "| candidate | status | delta chi2 | limit | taken up by |\n|---|---|---|---|---|\n";
+  size_t rows = 0;
+  for (const auto& c : r["candidates"]) {
+    const std::string type = c["type"];
+    // Every candidate but the long lists of coil groups and bump places, which show their best.
+    if ((type == "trimcoil-sectors" || type == "field-harmonic") && rows > 40) continue;
+    std::string lim;
+    for (auto it = c["detection_limit"].begin(); it != c["detection_limit"].end(); ++it)
+      lim += (lim.empty() ? "" : ", ") + it.key() + " " + num(it.value(), 2);
+    std::string by;
+    for (const auto& b : c["absorbed_by"])
+      by += (by.empty() ? "" : ", ") + b["variable"].get<std::string>() + " (" + num(b["sigmas"], 2) + " sigma)";
+    md << "| " << c["label"].get<std::string>() << " | " << c["status"].get<std::string>() << " | "
+       << num(c["delta_chi2"], 3) << " | " << lim << " | " << by << " |\n";
+    ++rows;
+  }
+  md << "\n";
+  if (!r["not_candidates"].empty()) {
+    md << "Not candidates (a design variable represents them, or they leave no trace in radial turns):\n\n";
+    for (const auto& n : r["not_candidates"]) {
+      md << "- " << n["type"].get<std::string>();
+      if (!n["instance"].empty()) md << " " << n["instance"].dump();
+      md << ": " << n["reason"].get<std::string>();
+      if (!n["variables"].empty()) {
+        md << " (";
+        std::string sep;
+        for (const auto& x : n["variables"]) md << sep << x.get<std::string>(), sep = ", ";
+        md << ")";
+      }
+      md << "\n";
+    }
+  }
+  md << "\n" << r["evaluations"] << " designs simulated in " << num(r["wall_s"], 3) << " s.\n";
+  return md.str();
+}
+
+json relocate_machine_paths(json doc, const std::string& from_dir, const std::string& out_path) {
+  namespace fs = std::filesystem;
+  if (out_path == "-" || out_path.empty()) return doc;
+  const fs::path to = fs::absolute(fs::path(out_path)).parent_path();
+  const fs::path from = fs::absolute(from_dir.empty() ? fs::path(".") : fs::path(from_dir));
+  auto fix = [&](json& v) {
+    if (!v.is_string() || v.get<std::string>().empty()) return;
+    const fs::path p(v.get<std::string>());
+    if (p.is_absolute()) return;
+    const fs::path abs = (from / p).lexically_normal();
+    const fs::path rel = abs.lexically_relative(to);
+    v = rel.empty() ? abs.string() : rel.string();
+  };
+  if (doc.contains("field") && doc["field"].contains("map")) fix(doc["field"]["map"]);
+  for (const char* list : {"cavities", "trimcoils"})
+    if (doc.contains(list) && doc[list].is_array())
+      for (auto& e : doc[list])
+        for (const char* k : {"profile", "table"})
+          if (e.contains(k)) fix(e[k]);
+  if (doc.contains("bunch") && doc["bunch"].contains("file")) fix(doc["bunch"]["file"]);
+  return doc;
+}
+
+namespace {
+
+/// Residuals before and after per probe, with the noise band and the located regions; and each
+/// effect's signature beside the residual it explains.
+void write_figures(const TurnPatternProblem& p, const Diagnosis& d, const json& report, const std::string& dir,
+                   bool quiet) {
+  std::filesystem::create_directories(dir);
+  const TurnTable& meas = p.measured();
+  Figure fig;
+  fig.kind = "diagnose";
+  fig.title = "turnfit-diagnose: model minus measurement, before and after (" + report["verdict"].get<std::string>() + ")";
+  for (size_t pr = 0; pr < meas.probes.size(); ++pr) {
+    Panel panel;
+    panel.title = meas.probes[pr];
+    panel.xlabel = "turn";
+    panel.ylabel = "model - measured [mm]";
+    panel.lines.push_back({false, 0, "", 1, false});
+    for (const auto& f : report["located"])
+      if (f.value("probe", "") == meas.probes[pr] && f.value("significant", false) && f.contains("turns") &&
+          f["kind"] == "region") {
+        panel.lines.push_back({true, f["turns"][0].get<double>() - 0.5, "", 2, false});
+        panel.lines.push_back({true, f["turns"][1].get<double>() + 0.5, "", 2, false});
+      }
+    fig.panels.push_back(panel);
+    Series band, before, after;
+    band.panel = before.panel = after.panel = static_cast<int>(pr);
+    band.name = "noise (1 sigma)";
+    band.style = SeriesStyle::band;
+    band.color = -1;
+    before.name = "after the design variables' fit";
+    before.style = SeriesStyle::points;
+    before.color = 0;
+    before.point = 6;
+    after.name = d.effects.empty() ? "" : "with the effects found";
+    after.style = SeriesStyle::points;
+    after.color = 1;
+    auto [b, e] = meas.probe_range(static_cast<int>(pr));
+    for (size_t i = b; i < e; ++i) {
+      const double t = meas.points[i].turn;
+      band.x.push_back(t), band.y.push_back(0), band.y_lo.push_back(-d.noise.sigma_mm[i]),
+          band.y_hi.push_back(d.noise.sigma_mm[i]);
+      if (!std::isnan(d.residual_before_mm[i])) before.x.push_back(t), before.y.push_back(d.residual_before_mm[i]);
+      if (!std::isnan(d.residual_after_mm[i])) after.x.push_back(t), after.y.push_back(d.residual_after_mm[i]);
+    }
+    fig.series.push_back(band);
+    fig.series.push_back(before);
+    if (!d.effects.empty()) fig.series.push_back(after);
+  }
+  RenderOptions ro;
+  ro.quiet = quiet;
+  ro.image = (std::filesystem::path(dir) / "residuals.png").string();
+  render_figure(fig, ro);
+
+  for (size_t k = 0; k < d.effects.size(); ++k) {
+    Figure sf;
+    sf.kind = "diagnose";
+    sf.title = "effect " + std::to_string(k + 1) + ": " + d.effects[k]["label"].get<std::string>() +
+               ", its signature (design variables refitted) beside the residual";
+    for (size_t pr = 0; pr < meas.probes.size(); ++pr) {
+      Panel panel;
+      panel.title = meas.probes[pr];
+      panel.xlabel = "turn";
+      panel.ylabel = "[mm]";
+      panel.lines.push_back({false, 0, "", 1, false});
+      sf.panels.push_back(panel);
+      Series res, sig;
+      res.panel = sig.panel = static_cast<int>(pr);
+      res.name = "residual before";
+      res.style = SeriesStyle::points;
+      res.point = 6;
+      res.color = 0;
+      sig.name = "the effect's signature";
+      sig.style = SeriesStyle::lines;
+      sig.color = 2;
+      sig.size = 2;
+      auto [b, e] = meas.probe_range(static_cast<int>(pr));
+      for (size_t i = b; i < e; ++i) {
+        const double t = meas.points[i].turn;
+        if (!std::isnan(d.residual_before_mm[i])) res.x.push_back(t), res.y.push_back(d.residual_before_mm[i]);
+        if (!std::isnan(d.signatures_mm[k][i])) sig.x.push_back(t), sig.y.push_back(d.signatures_mm[k][i]);
+      }
+      sf.series.push_back(res);
+      sf.series.push_back(sig);
+    }
+    ro.image = (std::filesystem::path(dir) / ("effect-" + std::to_string(k + 1) + ".png")).string();
+    render_figure(sf, ro);
+  }
+}
+
+}  // namespace
+
+int run_diagnose(const DiagnoseOptions& o) {
+  const std::string out_path = o.common.output.empty() ? "-" : o.common.output;
+  const int stdout_users = (out_path == "-") + (o.markdown == "-") + (o.machine_out == "-");
+  if (stdout_users > 1) throw usage_error("only one of -o, --markdown and --machine-out can be stdout");
+  if (o.problem == "-" && o.start == "-") throw usage_error("the problem and --start cannot both be stdin");
+  DiagnoseSettings s = o.settings;
+  s.types = parse_effect_types(o.effects);
+  s.threads = cli::resolve_threads(o.common.threads);
+  if (!o.common.quiet) s.log = [](const std::string& line) { std::cerr << "turnfit-diagnose: " << line << "\n"; };
+
+  LoadedProblem lp = load_problem(o.problem, "", -1);
+  auto* p = dynamic_cast<TurnPatternProblem*>(lp.problem.get());
+  if (!p)
+    throw usage_error(shown(o.problem) + " is not a turn-pattern problem (it names no machine): turnfit-diagnose "
+                                         "diagnoses a machine against measured turns");
+  const std::vector<double> x0 = read_start(*p, o.start, o.pick);
+  {
+    const TurnPatternResult r0 = p->simulate(x0);
+    size_t matched = 0;
+    for (unsigned char m : r0.matched) matched += m != 0;
+    if (!r0.ok || matched == 0) {
+      const std::string why = !r0.ok ? "the start cannot be simulated: " + r0.reason
+                                     : "the start reaches no measured turn (" + r0.end.status + ")";
+      if (!o.start.empty()) throw data_error(shown(o.start), 0, why);
+      throw data_error(shown(o.problem), 0, "machine: " + p->machine().path + ": " + why);
+    }
+  }
+  // Outputs are opened (an unwritable path fails at once) and released again during the
+  // diagnosis, then written and committed together: a failed or killed run leaves none.
+  for (const std::string& path : {out_path, o.markdown, o.machine_out})
+    if (!path.empty() && path != "-") OutputFile probe(path);
+  if (!o.figures.empty() && std::filesystem::exists(o.figures) && !std::filesystem::is_directory(o.figures))
+    throw usage_error("--figures: " + o.figures + " exists and is not a folder");
+
+  const Diagnosis d = diagnose(*p, x0, s);
+  const json report = diagnosis_report(*p, d, o.start, !o.common.no_provenance);
+
+  std::unique_ptr<OutputFile> rep = std::make_unique<OutputFile>(out_path);
+  std::unique_ptr<OutputFile> md = o.markdown.empty() ? nullptr : std::make_unique<OutputFile>(o.markdown);
+  std::unique_ptr<OutputFile> mo = o.machine_out.empty() ? nullptr : std::make_unique<OutputFile>(o.machine_out);
+  rep->stream() << report.dump(1) << "\n";
+  if (md) md->stream() << diagnosis_markdown(*p, report);
+  if (mo) {
+    json doc = relocate_machine_paths(d.machine_after, p->machine().dir, o.machine_out);
+    doc["description"] = std::string(doc.value("description", "")) +
+                         (doc.value("description", "").empty() ? "" : " ") + "Diagnosed by turnfit-diagnose (" +
+                         d.verdict + ") against " + p->file() + ": design variables at the refit, effects found appended.";
+    mo->stream() << doc.dump(1) << "\n";
+  }
+  if (!o.figures.empty()) write_figures(*p, d, report, o.figures, o.common.quiet);
+  if (mo) mo->commit();
+  if (md) md->commit();
+  rep->commit();
+  if (!o.common.quiet) {
+    std::cerr << "turnfit-diagnose: " << d.verdict;
+    for (const auto& e : d.effects) std::cerr << "; " << e["label"].get<std::string>();
+    std::cerr << " (worst turn " << cli::fmt(d.before.linf_mm, 3) << " -> " << cli::fmt(d.after.linf_mm, 3)
+              << " mm, chi2/dof " << cli::fmt(d.before.chi2_per_dof, 3) << " -> " << cli::fmt(d.after.chi2_per_dof, 3)
+              << "; " << d.evaluations << " designs, " << cli::fmt(d.wall_s, 3) << " s)\n";
+  }
+  return 0;
+}
+
+}  // namespace turnfit

@@ -1,0 +1,400 @@
+// Noise of a residual from its own scatter, radial tunes, and where and how a residual departs
+// from noise (offset, trend, oscillation at the radial tune, step, outliers, regions).
+#include <algorithm>
+#include <cmath>
+#include <numeric>
+
+#include "turnfit/cli/common.hpp"
+#include "turnfit/diagnose/diagnose.hpp"
+#include "turnfit/field/load.hpp"
+#include "turnfit/io/parallel.hpp"
+#include "turnfit/orbit/closed_orbit.hpp"
+
+namespace turnfit {
+
+using nlohmann::json;
+
+namespace {
+
+double median(std::vector<double> v) {
+  if (v.empty()) return std::nan("");
+  const size_t h = v.size() / 2;
+  std::nth_element(v.begin(), v.begin() + static_cast<long>(h), v.end());
+  if (v.size() % 2) return v[h];
+  const double hi = v[h];
+  std::nth_element(v.begin(), v.begin() + static_cast<long>(h) - 1, v.end());
+  return 0.5 * (hi + v[h - 1]);
+}
+
+double peak_error(const TurnPoint& pt) { return std::isnan(pt.r_err_mm) ? 0.0 : pt.r_err_mm; }
+
+// The median of chi2 with one degree of freedom.
+constexpr double kChi2Median1 = 0.454936423119573;
+
+}  // namespace
+
+NoiseEstimate estimate_noise(const TurnTable& measured, const std::vector<double>& e,
+                             const std::vector<unsigned char>& matched, double floor_mm) {
+  NoiseEstimate out;
+  out.probes = measured.probes;
+  const size_t n = measured.points.size();
+  out.sigma_mm.assign(n, 0);
+  out.outlier.assign(n, 0);
+  for (size_t p = 0; p < measured.probes.size(); ++p) {
+    auto [b, end] = measured.probe_range(static_cast<int>(p));
+    auto solve = [&](const std::vector<unsigned char>& skip, size_t& used) {
+      std::vector<std::array<size_t, 3>> triples;
+      for (size_t i = b + 1; i + 1 < end; ++i) {
+        const auto& a = measured.points[i - 1];
+        const auto& c = measured.points[i];
+        const auto& d = measured.points[i + 1];
+        if (c.turn - a.turn != 1 || d.turn - c.turn != 1) continue;
+        if (!matched[i - 1] || !matched[i] || !matched[i + 1] || skip[i - 1] || skip[i] || skip[i + 1]) continue;
+        triples.push_back({i - 1, i, i + 1});
+      }
+      used = triples.size();
+      if (triples.size() < 3) return std::nan("");
+      auto ratio_median = [&](double s) {
+        std::vector<double> q;
+        q.reserve(triples.size());
+        for (const auto& t : triples) {
+          const double d2 = e[t[0]] - 2 * e[t[1]] + e[t[2]];
+          const double u0 = peak_error(measured.points[t[0]]), u1 = peak_error(measured.points[t[1]]),
+                       u2 = peak_error(measured.points[t[2]]);
+          const double var = 6 * s * s + u0 * u0 + 4 * u1 * u1 + u2 * u2;
+          q.push_back(d2 * d2 / std::max(var, 1e-300));
+        }
+        return median(q);
+      };
+      if (ratio_median(floor_mm) <= kChi2Median1) return floor_mm;
+      double lo = floor_mm, hi = 1.0;
+      while (ratio_median(hi) > kChi2Median1 && hi < 1e4) hi *= 4;
+      for (int it = 0; it < 80; ++it) {
+        const double mid = std::sqrt(lo * hi);
+        (ratio_median(mid) > kChi2Median1 ? lo : hi) = mid;
+      }
+      return std::sqrt(lo * hi);
+    };
+    std::vector<unsigned char> none(n, 0);
+    size_t used = 0;
+    double s = solve(none, used);
+    if (std::isnan(s)) {  // too few consecutive turns: the scatter about the probe's mean
+      std::vector<double> v;
+      for (size_t i = b; i < end; ++i)
+        if (matched[i]) v.push_back(e[i]);
+      double mean = v.empty() ? 0 : std::accumulate(v.begin(), v.end(), 0.0) / static_cast<double>(v.size());
+      double ss = 0;
+      for (double x : v) ss += (x - mean) * (x - mean);
+      s = v.size() > 1 ? std::sqrt(ss / static_cast<double>(v.size() - 1)) : floor_mm;
+      s = std::max(s, floor_mm);
+    }
+    // Single outliers: beyond 5 sigma of the running median of five turns (a merged or
+    // misplaced peak; no physics moves one turn alone); then the scatter again without them.
+    for (int round = 0; round < 2; ++round) {
+      for (size_t i = b; i < end; ++i) {
+        if (!matched[i]) continue;
+        std::vector<double> w;
+        for (size_t k = (i >= b + 2 ? i - 2 : b); k < std::min(end, i + 3); ++k)
+          if (matched[k]) w.push_back(e[k]);
+        const double sig = std::sqrt(s * s + peak_error(measured.points[i]) * peak_error(measured.points[i]));
+        out.outlier[i] = w.size() >= 4 && std::fabs(e[i] - median(w)) > 5 * sig;
+      }
+      const double again = solve(out.outlier, used);
+      if (!std::isnan(again)) s = again;
+    }
+    out.scatter_mm.push_back(s);
+    out.differences.push_back(used);
+    for (size_t i = b; i < end; ++i) {
+      const double u = peak_error(measured.points[i]);
+      out.sigma_mm[i] = std::sqrt(s * s + u * u);
+    }
+  }
+  return out;
+}
+
+double TuneTable::at(double r) const {
+  if (r_mm.empty()) return std::nan("");
+  if (r <= r_mm.front()) return nu_r.front();
+  if (r >= r_mm.back()) return nu_r.back();
+  const size_t k = static_cast<size_t>(std::upper_bound(r_mm.begin(), r_mm.end(), r) - r_mm.begin());
+  const double f = (r - r_mm[k - 1]) / (r_mm[k] - r_mm[k - 1]);
+  return nu_r[k - 1] + f * (nu_r[k] - nu_r[k - 1]);
+}
+
+TuneTable radial_tunes(const Machine& m, unsigned threads) {
+  TuneTable t;
+  if (!m.injection) return t;
+  const PolarFieldMap map = load_main_field(m);
+  OrbitSettings os;
+  os.mass_MeV = m.particle.mass_MeV;
+  os.charge_e = m.particle.charge_e;
+  // Energies from injection to where the map ends: closed orbits at 40 energies, geometric
+  // spacing (the radius grows as the momentum does).
+  const double e0 = m.injection->energy_MeV;
+  std::vector<double> energies;
+  for (int k = 0; k < 40; ++k) energies.push_back(e0 * std::pow(12.0, k / 39.0));
+  const auto rows = orbit_table(map, os, energies, threads);
+  for (const auto& r : rows)
+    if (r.ok() && std::isfinite(r.nu_r) && (t.r_mm.empty() || r.r_avg_mm > t.r_mm.back())) {
+      t.r_mm.push_back(r.r_avg_mm);
+      t.nu_r.push_back(r.nu_r);
+    }
+  return t;
+}
+
+namespace {
+
+/// Weighted least squares of y on the columns of A (rows weighted by w = 1/sigma); returns chi2
+/// of the residual and the fitted values.
+double wls(const Eigen::MatrixXd& A, const Eigen::VectorXd& y, const Eigen::VectorXd& w, Eigen::VectorXd* fit) {
+  const Eigen::MatrixXd Aw = w.asDiagonal() * A;
+  const Eigen::VectorXd yw = w.cwiseProduct(y);
+  const Eigen::VectorXd c = Aw.completeOrthogonalDecomposition().solve(yw);
+  if (fit) *fit = A * c;
+  return (yw - Aw * c).squaredNorm();
+}
+
+Eigen::MatrixXd legendre(const Eigen::VectorXd& x, int degree) {
+  Eigen::MatrixXd L(x.size(), degree + 1);
+  for (Eigen::Index i = 0; i < x.size(); ++i) {
+    double p0 = 1, p1 = x[i];
+    L(i, 0) = 1;
+    if (degree >= 1) L(i, 1) = p1;
+    for (int d = 2; d <= degree; ++d) {
+      const double p2 = ((2 * d - 1) * x[i] * p1 - (d - 1) * p0) / d;
+      L(i, d) = p2;
+      p0 = p1;
+      p1 = p2;
+    }
+  }
+  return L;
+}
+
+json range(double a, double b) { return json::array({a, b}); }
+
+}  // namespace
+
+Located locate(const TurnTable& measured, const std::vector<double>& e, const std::vector<unsigned char>& matched,
+               const NoiseEstimate& noise, const TuneTable& tunes, double dof, double threshold) {
+  Located out;
+  const size_t N = measured.points.size();
+  for (size_t i = 0; i < N; ++i)
+    if (matched[i] && !noise.outlier[i]) {
+      const double z = e[i] / noise.sigma_mm[i];
+      out.chi2 += z * z;
+      ++out.points;
+    }
+  // Wilson and Hilferty's cube-root normal approximation of chi2's upper tail.
+  if (dof > 0) {
+    const double v = dof, zc = (std::cbrt(out.chi2 / v) - (1 - 2 / (9 * v))) / std::sqrt(2 / (9 * v));
+    out.chi2_p_value = 0.5 * std::erfc(zc / std::sqrt(2.0));
+  }
+  const double logN = std::log(std::max<double>(2, static_cast<double>(out.points)));
+  auto significant = [&](double dchi2, int k) { return dchi2 > k * logN + threshold; };
+  if (out.chi2_p_value < 1e-3) out.significant = true;
+  out.findings.push_back({{"kind", "overall"},
+                          {"chi2", out.chi2},
+                          {"points", out.points},
+                          {"dof", dof},
+                          {"chi2_per_dof", dof > 0 ? out.chi2 / dof : std::nan("")},
+                          {"p_value", out.chi2_p_value},
+                          {"significant", out.chi2_p_value < 1e-3}});
+
+  for (size_t p = 0; p < measured.probes.size(); ++p) {
+    const std::string& probe = measured.probes[p];
+    auto [b, end] = measured.probe_range(static_cast<int>(p));
+    std::vector<size_t> idx;
+    for (size_t i = b; i < end; ++i) {
+      if (!matched[i]) continue;
+      if (noise.outlier[i]) {
+        const auto& pt = measured.points[i];
+        out.findings.push_back({{"kind", "outlier"},
+                                {"probe", probe},
+                                {"turns", range(pt.turn, pt.turn)},
+                                {"r_mm", range(pt.r_mm, pt.r_mm)},
+                                {"residual_mm", e[i]},
+                                {"sigma_mm", noise.sigma_mm[i]},
+                                {"significant", false},
+                                {"text", "turn " + std::to_string(pt.turn) + " alone, " +
+                                             cli::fmt(e[i] / noise.sigma_mm[i], 3) +
+                                             " sigma from its neighbours: a peak, not physics (left out)"}});
+        continue;
+      }
+      idx.push_back(i);
+    }
+    const auto n = static_cast<Eigen::Index>(idx.size());
+    if (n < 3) continue;
+    Eigen::VectorXd y(n), w(n), x(n), r(n);
+    const double t0 = measured.points[idx.front()].turn, t1 = measured.points[idx.back()].turn;
+    for (Eigen::Index k = 0; k < n; ++k) {
+      const auto& pt = measured.points[idx[static_cast<size_t>(k)]];
+      y[k] = e[idx[static_cast<size_t>(k)]];
+      w[k] = 1 / noise.sigma_mm[idx[static_cast<size_t>(k)]];
+      x[k] = t1 > t0 ? 2 * (pt.turn - t0) / (t1 - t0) - 1 : 0;
+      r[k] = pt.r_mm;
+    }
+    const double chi2_0 = w.cwiseProduct(y).squaredNorm();
+    const double sigma_typ = 1 / median(std::vector<double>(w.data(), w.data() + n));
+    auto turn_of = [&](Eigen::Index k) { return measured.points[idx[static_cast<size_t>(k)]].turn; };
+    out.findings.push_back({{"kind", "probe"},
+                            {"probe", probe},
+                            {"turns", range(turn_of(0), turn_of(n - 1))},
+                            {"r_mm", range(r.minCoeff(), r.maxCoeff())},
+                            {"chi2", chi2_0},
+                            {"points", n},
+                            {"rms_mm", std::sqrt(y.squaredNorm() / static_cast<double>(n))},
+                            {"noise_mm", sigma_typ}});
+
+    // Offset.
+    {
+      Eigen::MatrixXd A = Eigen::MatrixXd::Ones(n, 1);
+      Eigen::VectorXd fit;
+      const double g = chi2_0 - wls(A, y, w, &fit);
+      const bool sig = significant(g, 1);
+      out.significant = out.significant || sig;
+      out.findings.push_back({{"kind", "offset"},
+                              {"probe", probe},
+                              {"offset_mm", fit[0]},
+                              {"delta_chi2", g},
+                              {"significant", sig},
+                              {"text", probe + " as a whole " + cli::fmt(fit[0], 3) + " mm"}});
+    }
+    // Smooth trend: Legendre degree by BIC.
+    int best_d = -1;
+    double best_bic = chi2_0, best_chi2 = chi2_0;
+    Eigen::VectorXd trend = Eigen::VectorXd::Zero(n);
+    for (int d = 0; d <= std::min<int>(8, static_cast<int>(n / 4)); ++d) {
+      Eigen::VectorXd fit;
+      const double c2 = wls(legendre(x, d), y, w, &fit);
+      const double bic = c2 + (d + 1) * logN;
+      if (bic < best_bic) best_bic = bic, best_d = d, best_chi2 = c2, trend = fit;
+    }
+    if (best_d >= 0) {
+      const double g = chi2_0 - best_chi2;
+      const bool sig = significant(g, best_d + 1);
+      out.significant = out.significant || sig;
+      // Its extent: where the trend is larger than the noise of one turn.
+      Eigen::Index a = -1, z = -1, at = 0;
+      for (Eigen::Index k = 0; k < n; ++k) {
+        if (std::fabs(trend[k]) > std::fabs(trend[at])) at = k;
+        if (std::fabs(trend[k]) > sigma_typ) {
+          if (a < 0) a = k;
+          z = k;
+        }
+      }
+      json f = {{"kind", "trend"},   {"probe", probe},  {"degree", best_d},       {"delta_chi2", g},
+                {"significant", sig}, {"peak_mm", trend[at]}, {"peak_turn", turn_of(at)}};
+      if (a >= 0) {
+        f["turns"] = range(turn_of(a), turn_of(z));
+        f["r_mm"] = range(r[a], r[z]);
+      }
+      f["text"] = "a smooth trend (degree " + std::to_string(best_d) + ") up to " + cli::fmt(trend[at], 3) +
+                  " mm at turn " + std::to_string(turn_of(at)) +
+                  (a >= 0 ? ", above the noise over turns " + std::to_string(turn_of(a)) + "-" + std::to_string(turn_of(z))
+                          : std::string());
+      out.findings.push_back(f);
+    }
+    const Eigen::MatrixXd T = legendre(x, std::max(best_d, 0));
+    const double chi2_t = wls(T, y, w, nullptr);
+
+    // A coherent oscillation at the radial tune: betatron phase advanced by 2 pi nu_r a turn.
+    if (!tunes.r_mm.empty() && n >= 8) {
+      Eigen::VectorXd psi(n);
+      psi[0] = 0;
+      for (Eigen::Index k = 1; k < n; ++k)
+        psi[k] = psi[k - 1] + 2 * M_PI * tunes.at(0.5 * (r[k] + r[k - 1])) * (turn_of(k) - turn_of(k - 1));
+      Eigen::MatrixXd A(n, T.cols() + 4);
+      A << T, psi.array().cos().matrix(), psi.array().sin().matrix(), psi.array().cos().matrix().cwiseProduct(x),
+          psi.array().sin().matrix().cwiseProduct(x);
+      Eigen::VectorXd fit;
+      const double c2 = wls(A, y, w, &fit);
+      const Eigen::VectorXd osc = fit - T * (w.asDiagonal() * T).completeOrthogonalDecomposition().solve(w.cwiseProduct(y));
+      const double g = chi2_t - c2;
+      const bool sig = significant(g, 4);
+      out.significant = out.significant || sig;
+      const double nu_mid = tunes.at(r[n / 2]);
+      const double q = nu_mid - std::floor(nu_mid);
+      out.findings.push_back({{"kind", "oscillation"},
+                              {"probe", probe},
+                              {"nu_r", nu_mid},
+                              {"cycles_per_turn", std::min(q, 1 - q)},
+                              {"delta_chi2", g},
+                              {"significant", sig},
+                              {"amplitude_mm", std::sqrt(2.0) * std::sqrt(osc.squaredNorm() / static_cast<double>(n))},
+                              {"text", "an oscillation at the radial tune (nu_r " + cli::fmt(nu_mid, 4) + ", " +
+                                           cli::fmt(std::min(q, 1 - q), 3) + " cycles a turn), amplitude " +
+                                           cli::fmt(std::sqrt(2.0) * std::sqrt(osc.squaredNorm() / static_cast<double>(n)), 3) +
+                                           " mm"}});
+    }
+    // A step over a quadratic background.
+    if (n >= 10) {
+      const Eigen::MatrixXd Q = legendre(x, 2);
+      const double c2q = wls(Q, y, w, nullptr);
+      double best = 0, size = 0;
+      Eigen::Index at = -1;
+      for (Eigen::Index k = 3; k + 3 <= n; ++k) {
+        Eigen::MatrixXd A(n, 4);
+        A << Q, (Eigen::VectorXd::LinSpaced(n, 0, static_cast<double>(n - 1)).array() >= static_cast<double>(k))
+                    .cast<double>()
+                    .matrix();
+        const Eigen::VectorXd c = (w.asDiagonal() * A).completeOrthogonalDecomposition().solve(w.cwiseProduct(y));
+        const double g = c2q - (w.cwiseProduct(y - A * c)).squaredNorm();
+        if (g > best) best = g, at = k, size = c[3];
+      }
+      if (at > 0) {
+        // The step's place is a free parameter too: look-elsewhere as one more (k = 2).
+        const bool sig = significant(best, 2) && best > 2 * std::log(static_cast<double>(n));
+        out.significant = out.significant || sig;
+        out.findings.push_back({{"kind", "step"},
+                                {"probe", probe},
+                                {"turns", range(turn_of(at - 1), turn_of(at))},
+                                {"r_mm", range(r[at - 1], r[at])},
+                                {"step_mm", size},
+                                {"delta_chi2", best},
+                                {"significant", sig},
+                                {"text", "a step of " + cli::fmt(size, 3) + " mm between turns " +
+                                             std::to_string(turn_of(at - 1)) + " and " + std::to_string(turn_of(at))}});
+      }
+    }
+    // Regions: runs where the running mean over 5 turns lies beyond 3 sigma of its noise.
+    {
+      Eigen::Index k = 0;
+      while (k < n) {
+        auto zbar = [&](Eigen::Index c) {
+          double s = 0, s2 = 0;
+          int m = 0;
+          for (Eigen::Index j = std::max<Eigen::Index>(0, c - 2); j <= std::min<Eigen::Index>(n - 1, c + 2); ++j)
+            s += y[j] * w[j], ++m;
+          s2 = s / std::sqrt(static_cast<double>(m));
+          return s2;
+        };
+        if (std::fabs(zbar(k)) <= 3) {
+          ++k;
+          continue;
+        }
+        const double sign = zbar(k) > 0 ? 1 : -1;
+        Eigen::Index a = k;
+        while (k < n && zbar(k) * sign > 3) ++k;
+        const Eigen::Index z = k - 1;
+        if (z - a + 1 < 3) continue;
+        double c2 = 0, mean = 0, sw = 0;
+        for (Eigen::Index j = a; j <= z; ++j) c2 += y[j] * w[j] * y[j] * w[j], mean += y[j] * w[j] * w[j], sw += w[j] * w[j];
+        out.findings.push_back({{"kind", "region"},
+                                {"probe", probe},
+                                {"turns", range(turn_of(a), turn_of(z))},
+                                {"r_mm", range(r[a], r[z])},
+                                {"mean_mm", mean / sw},
+                                {"chi2", c2},
+                                {"points", z - a + 1},
+                                {"significant", c2 - static_cast<double>(z - a + 1) > 3 * logN + threshold},
+                                {"text", "turns " + std::to_string(turn_of(a)) + "-" + std::to_string(turn_of(z)) + " (" +
+                                             cli::fmt(std::round(r[a]), 6) + "-" + cli::fmt(std::round(r[z]), 6) +
+                                             " mm) " + (sign > 0 ? "the model outside the measurement" : "the model inside the measurement") + " by " +
+                                             cli::fmt(std::fabs(mean / sw), 3) + " mm on average"}});
+      }
+    }
+  }
+  return out;
+}
+
+}  // namespace turnfit

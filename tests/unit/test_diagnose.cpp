@@ -1,0 +1,199 @@
+// turnfit-diagnose's pieces: the noise from a residual's own scatter, where a residual departs
+// from noise, the catalogue against the problem's variables, and whole diagnoses of noiseless
+// ring8 truths (a concealed bump is named, measured and refitted; nothing is named when
+// nothing is concealed).
+#include <catch2/catch.hpp>
+
+#include <cmath>
+#include <random>
+
+#include "ring8_problem.hpp"
+#include "turnfit/diagnose/diagnose.hpp"
+
+using namespace turnfit;
+using namespace turnfit::test;
+using nlohmann::json;
+
+namespace {
+
+/// A measured table of one probe with turns 1..n at radii 2000 + 10 k, with or without r_err.
+TurnTable one_probe(int n, double r_err) {
+  TurnTable t;
+  t.probes = {"P"};
+  for (int k = 1; k <= n; ++k) {
+    TurnPoint pt;
+    pt.probe = 0;
+    pt.turn = k;
+    pt.r_mm = 2000 + 10 * k;
+    pt.r_err_mm = r_err > 0 ? r_err : std::nan("");
+    t.points.push_back(pt);
+  }
+  finish_turn_table(t);
+  return t;
+}
+
+const json* find_kind(const json& findings, const std::string& kind) {
+  for (const auto& f : findings)
+    if (f["kind"] == kind) return &f;
+  return nullptr;
+}
+
+}  // namespace
+
+TEST_CASE("diagnose noise: white scatter under a smooth trend is recovered; peak errors take their share",
+          "[diagnose]") {
+  std::mt19937_64 rng(7);
+  std::normal_distribution<double> g(0, 1);
+  const int n = 400;
+  const TurnTable t = one_probe(n, 0);
+  std::vector<double> e(n);
+  std::vector<unsigned char> m(n, 1);
+  // 0.02 mm white noise on a 0.5 mm smooth trend: second differences see the noise alone.
+  for (int k = 0; k < n; ++k) e[static_cast<size_t>(k)] = 0.5 * std::sin(k / 60.0) + 0.02 * g(rng);
+  NoiseEstimate ne = estimate_noise(t, e, m);
+  REQUIRE(ne.scatter_mm.size() == 1);
+  CHECK(ne.scatter_mm[0] == Approx(0.02).epsilon(0.12));
+  // The whole scatter is the peaks' own (r_err 0.02): the per-turn scatter goes to the floor.
+  const TurnTable te = one_probe(n, 0.02);
+  ne = estimate_noise(te, e, m);
+  CHECK(ne.scatter_mm[0] < 0.008);
+  CHECK(ne.sigma_mm[10] == Approx(0.02).epsilon(0.15));
+  // A single bad turn is an outlier and does not inflate the scatter.
+  std::vector<double> e2 = e;
+  e2[200] += 0.5;
+  ne = estimate_noise(t, e2, m);
+  CHECK(ne.outlier[200]);
+  CHECK(ne.scatter_mm[0] == Approx(0.02).epsilon(0.12));
+  size_t outliers = 0;
+  for (unsigned char o : ne.outlier) outliers += o;
+  CHECK(outliers == 1);
+}
+
+TEST_CASE("diagnose locate: noise is nothing; a step, an oscillation at the tune and a trend are found where they are",
+          "[diagnose]") {
+  std::mt19937_64 rng(11);
+  std::normal_distribution<double> g(0, 1);
+  const int n = 160;
+  const TurnTable t = one_probe(n, 0);
+  std::vector<unsigned char> m(n, 1);
+  TuneTable tunes;
+  tunes.r_mm = {1000, 5000};
+  tunes.nu_r = {1.18, 1.18};  // 0.18 cycles a turn
+  auto noise_of = [&](const std::vector<double>& e) { return estimate_noise(t, e, m); };
+
+  std::vector<double> pure(n);
+  for (auto& v : pure) v = 0.01 * g(rng);
+  Located l = locate(t, pure, m, noise_of(pure), tunes, n, 10);
+  CHECK_FALSE(l.significant);
+
+  std::vector<double> step = pure;
+  for (int k = 100; k < n; ++k) step[static_cast<size_t>(k)] += 0.05;  // 5 sigma from turn 101 on
+  l = locate(t, step, m, noise_of(step), tunes, n, 10);
+  CHECK(l.significant);
+  const json* s = find_kind(l.findings, "step");
+  REQUIRE(s);
+  CHECK((*s)["significant"].get<bool>());
+  CHECK((*s)["turns"][1].get<double>() == Approx(101).margin(1));
+  CHECK((*s)["step_mm"].get<double>() == Approx(0.05).margin(0.01));
+
+  std::vector<double> osc = pure;
+  for (int k = 0; k < n; ++k) osc[static_cast<size_t>(k)] += 0.02 * std::cos(2 * M_PI * 1.18 * k + 0.3);
+  l = locate(t, osc, m, noise_of(osc), tunes, n, 10);
+  const json* o = find_kind(l.findings, "oscillation");
+  REQUIRE(o);
+  CHECK((*o)["significant"].get<bool>());
+  CHECK((*o)["amplitude_mm"].get<double>() == Approx(0.02).margin(0.005));
+  CHECK((*o)["cycles_per_turn"].get<double>() == Approx(0.18).margin(1e-9));
+
+  std::vector<double> trend = pure;
+  for (int k = 0; k < n; ++k) trend[static_cast<size_t>(k)] += 0.1 * std::exp(-std::pow((k - 120) / 15.0, 2));
+  l = locate(t, trend, m, noise_of(trend), tunes, n, 10);
+  const json* tr = find_kind(l.findings, "trend");
+  REQUIRE(tr);
+  CHECK((*tr)["significant"].get<bool>());
+  CHECK((*tr)["peak_turn"].get<double>() == Approx(121).margin(6));
+}
+
+TEST_CASE("diagnose catalogue: what a problem variable sets is no candidate", "[diagnose]") {
+  TempDir tmp;
+  std::vector<double> xt;
+  const Machine m = moved_ring8({}, {}, xt);
+  const std::string peaks = turns_as_peaks(m, tmp, "peaks.csv");
+  const std::string machine = ring8("machine.json");
+  auto problem = [&](const std::string& vars) {
+    return load_turn_problem(tmp.file("p.json", "{\"format\": \"turnfit-problem/1\", \"machine\": \"" + machine +
+                                                    "\", \"peaks\": \"" + peaks +
+                                                    "\", \"bunch\": \"reference\", \"variables\": " + vars + "}"));
+  };
+  auto count = [](const Catalogue& c, const std::string& type) {
+    size_t k = 0;
+    for (const auto& x : c.candidates) k += x.type == type;
+    return k;
+  };
+  // The paper's variables set both probes' place and the injection's radial start.
+  Catalogue c = effect_catalogue(*problem("\"paper\""), {});
+  CHECK(count(c, "probe-offset") == 0);
+  CHECK(count(c, "injection-offset") == 0);
+  CHECK(count(c, "sector-strength") == 8);
+  CHECK(count(c, "gap-bow") == 5);
+  CHECK(count(c, "voltage-tilt") == 5);
+  CHECK(count(c, "trimcoil-sectors") == 2 * 18 * 19 / 2);
+  CHECK(c.atoms.size() == 36);
+  // With rinit alone, the injection-offset candidate keeps its other radial parameters.
+  c = effect_catalogue(*problem("[\"rinit\"]"), {"injection-offset", "probe-offset"});
+  REQUIRE(count(c, "injection-offset") == 1);
+  std::vector<std::string> keys;
+  for (const auto& x : c.candidates)
+    if (x.type == "injection-offset")
+      for (const auto& p : x.params) keys.push_back(p.key);
+  CHECK(keys == std::vector<std::string>{"dpr_mrad", "dE_MeV", "dphase_deg"});
+  CHECK(count(c, "probe-offset") == 2);
+  CHECK(count(c, "field-harmonic") == 0);
+}
+
+TEST_CASE("diagnose: a concealed first-harmonic bump is named, sized and refitted; a truth without one gives nothing-missing",
+          "[diagnose]") {
+  TempDir tmp;
+  // The truth: rinit and vchange moved, plus (or not) a 2 G first harmonic at 3.0 m.
+  std::vector<double> xt;
+  Machine truth = moved_ring8({"rinit", "vchange"}, {0.02, -0.03}, xt);
+  const std::string machine = ring8("machine.json");
+  auto diagnosis = [&](const Machine& t, const std::string& name) {
+    const std::string peaks = turns_as_peaks(t, tmp, name + ".csv");
+    auto p = load_turn_problem(
+        tmp.file(name + ".json", "{\"format\": \"turnfit-problem/1\", \"machine\": \"" + machine + "\", \"peaks\": \"" +
+                                     peaks + "\", \"bunch\": \"reference\", \"variables\": [\"rinit\", \"prinit\", \"vchange\"]}"));
+    DiagnoseSettings s;
+    s.threads = 2;
+    s.types = {"field-harmonic", "gap-bow"};
+    return diagnose(*p, p->start(), s);
+  };
+  const Diagnosis control = diagnosis(truth, "control");
+  CHECK(control.verdict == "nothing-missing");
+  CHECK(control.effects.empty());
+
+  truth.doc["effects"] = json::array({{{"type", "field-harmonic"},
+                                       {"n", 1},
+                                       {"amplitude_T", 2e-4},
+                                       {"phase_deg", 60.0},
+                                       {"r_mm", 3000.0},
+                                       {"width_mm", 400.0}}});
+  revalidate(truth);
+  const Diagnosis d = diagnosis(truth, "bump");
+  CHECK(d.verdict == "missing-physics");
+  REQUIRE_FALSE(d.effects.empty());
+  const json& e = d.effects[0];
+  CHECK(e["type"] == "field-harmonic");
+  CHECK(e["parameters"]["n"] == 1);
+  CHECK(e["parameters"]["amplitude_T"].get<double>() == Approx(2e-4).epsilon(0.1));
+  CHECK(e["parameters"]["phase_deg"].get<double>() == Approx(60).margin(8));
+  CHECK(e["parameters"]["r_mm"].get<double>() == Approx(3000).margin(100));
+  CHECK(e["parameters"]["width_mm"].get<double>() == Approx(400).margin(100));
+  CHECK(d.after.rms_mm < 0.1 * d.before.rms_mm);
+  // The machine written has the effect as one machine-file entry, valid as it stands.
+  const Machine out = machine_from_json(d.machine_after, "diagnosed", truth.dir);
+  CHECK(out.effect_set.field_harmonics.size() == d.effects.size() -
+                                                      std::count_if(d.effects.begin(), d.effects.end(), [](const json& x) {
+                                                        return x["type"] != "field-harmonic";
+                                                      }));
+}
