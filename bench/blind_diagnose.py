@@ -76,10 +76,15 @@ Scoring (per true effect, then per case):
    outcome of a true effect:
      right            a matching entry in "effects"
      ambiguous-right  none in "effects", but a group of "ambiguous" lists a matching competitor
-     not visible      none named, and the report's candidate for it says "absorbed" or
-                      "below-limit" (the tool says no fit of this data can see it); but if the
-                      true size is more than twice the detection limit the report gives for it,
-                      the tool contradicts itself and it is "missed"
+     not visible      none named, the report's candidate for it (a harmonic: the grid bump
+                      nearest in centre and width) says "absorbed" or "not-seen", and the true
+                      size is at most twice the detection limit the report gives for it: the
+                      tool says no fit of this data can see it. Above twice its own limit the
+                      tool contradicts itself and the effect is "missed". The limit decides, not
+                      the status: on ring8 the variables take up over 95 % of every candidate's
+                      signature (visible_fraction 1e-6 to 1e-2), so nearly every candidate is
+                      "absorbed", and the limit is already the size that passes after that
+                      (turnfit-diagnose(1), "Detection limits and absorption").
      missed           none of the above
    a case (single or pair) is "right" when every visible true effect is right and the report
      names nothing else; "right+extra" when every visible one is right but it also names a
@@ -109,7 +114,7 @@ raw signatures). --noise paper needs turnfit-synth's --scan-errors (it says so w
 
 Usage: blind_diagnose.py [--cases N] [--kinds K,..] [--types T,..] [--sizes visible,near]
        [--noise low,paper] [--variables free,priors] [--master-seed S] [--bin DIR] [--threads 2]
-       [--particles 2000] [--work DIR] [--json FILE] [--markdown-out FILE] [--dry-run]
+       [--particles 2000] [--work DIR [--reuse]] [--json FILE] [--markdown-out FILE] [--dry-run]
 Python 3 standard library only; reuses bench/blind_localsearch.py.
 """
 import argparse
@@ -145,27 +150,76 @@ SECTORS = 8
 DRIFT_R_MM, DRIFT_PR_MRAD, DRIFT_V_REL = 0.65, 0.3, 1e-4
 VOLTAGE_VARS = ("vmaincav1", "vmaincav2", "vmaincav3", "vmaincav4", "vftcav", "vchange")
 
-# Sizes: (lo, hi) of the magnitude per type and size class. Calibrated on tuning master seeds
-# against the detection limits turnfit-diagnose reports (bench/RESULTS.md, "Blind suite for
-# turnfit-diagnose"); field-harmonic per n. PROVISIONAL until that calibration: from noiseless
-# fits (turnfit-localsearch, the 48 variables, on turnfit-track --centroid turns of nominal +
-# one effect), scaled so that the residual the variables leave is 0.01-0.02 mm rms ("visible")
-# or 0.002-0.004 mm ("near"); the peaks' own errors are ~0.01 mm rms over ~190 turns.
-SIZES = {
-    ("field-harmonic", 0): {"visible": (5e-5, 1e-4), "near": (1e-5, 2e-5)},
-    ("field-harmonic", 1): {"visible": (6e-4, 1.2e-3), "near": (1.2e-4, 2.4e-4)},
-    ("field-harmonic", 2): {"visible": (6e-4, 1.2e-3), "near": (1.2e-4, 2.4e-4)},
-    "sector-strength": {"visible": (1.2e-3, 2.5e-3), "near": (2.5e-4, 5e-4)},
-    "trimcoil-sectors": {"visible": (1.5e-3, 1.9e-3), "near": (5e-4, 1e-3)},
-    "gap-bow": {"visible": (250.0, 500.0), "near": (80.0, 160.0)},
-    "voltage-tilt": {"visible": (0.1, 0.2), "near": (0.02, 0.04)},
+# Sizes. A size is a factor times the detection limit turnfit-diagnose reported for that instance on the
+# tuning master seed 728291908 (bench/RESULTS.md, "Blind suite for turnfit-diagnose"; low noise, free
+# variables; the median over its first three cases): visible U(2.5, 5), near U(0.7, 1.4). A harmonic's limit
+# is interpolated linearly in r_mm between the tool's grid bumps (every 250 mm) and in width_mm between its
+# widths 250 and 500 mm (clamped to the grid). The limits were never read from the report seeds.
+FACTORS = {"visible": (2.5, 5.0), "near": (0.7, 1.4)}
+LIMITS = {
+    ('field-harmonic', 0): {
+        (2000.0, 250.0): 0.000155, (2000.0, 500.0): 7.61e-05, (2250.0, 250.0): 6.62e-05,
+        (2250.0, 500.0): 5.56e-05, (2500.0, 250.0): 3.82e-05, (2500.0, 500.0): 4.59e-05,
+        (2750.0, 250.0): 2.97e-05, (2750.0, 500.0): 3.38e-05, (3000.0, 250.0): 2.09e-05,
+        (3000.0, 500.0): 2.3e-05, (3250.0, 250.0): 1.67e-05, (3250.0, 500.0): 1.81e-05,
+        (3500.0, 250.0): 1.7e-05, (3500.0, 500.0): 1.72e-05, (3750.0, 250.0): 2.25e-05,
+        (3750.0, 500.0): 1.89e-05, (4000.0, 250.0): 2.56e-05, (4000.0, 500.0): 2.32e-05,
+        (4250.0, 250.0): 3.63e-05, (4250.0, 500.0): 3.29e-05,
+    },
+    ('field-harmonic', 1): {
+        (0, 0): 8.63e-05, (2000.0, 250.0): 0.000166, (2000.0, 500.0): 0.000132, (2250.0, 250.0): 9.29e-05,
+        (2250.0, 500.0): 0.000116, (2500.0, 250.0): 8.02e-05, (2500.0, 500.0): 0.000115,
+        (2750.0, 250.0): 7.47e-05, (2750.0, 500.0): 0.000123, (3000.0, 250.0): 0.000149,
+        (3000.0, 500.0): 0.000163, (3250.0, 250.0): 0.000166, (3250.0, 500.0): 0.000243,
+        (3500.0, 250.0): 0.000231, (3500.0, 500.0): 0.000423, (3750.0, 250.0): 0.000225,
+        (3750.0, 500.0): 0.000613, (4000.0, 250.0): 0.000468, (4000.0, 500.0): 0.000644,
+        (4250.0, 250.0): 0.00104, (4250.0, 500.0): 0.00127,
+    },
+    ('field-harmonic', 2): {
+        (0, 0): 0.000764, (2000.0, 250.0): 0.000985, (2000.0, 500.0): 0.00174, (2250.0, 250.0): 0.000887,
+        (2250.0, 500.0): 0.00198, (2500.0, 250.0): 0.000786, (2500.0, 500.0): 0.00178,
+        (2750.0, 250.0): 0.000876, (2750.0, 500.0): 0.00133, (3000.0, 250.0): 0.0011, (3000.0, 500.0): 0.00184,
+        (3250.0, 250.0): 0.00129, (3250.0, 500.0): 0.00193, (3500.0, 250.0): 0.0014, (3500.0, 500.0): 0.00181,
+        (3750.0, 250.0): 0.00155, (3750.0, 500.0): 0.00157, (4000.0, 250.0): 0.00173, (4000.0, 500.0): 0.00125,
+        (4250.0, 250.0): 0.00118, (4250.0, 500.0): 0.00111,
+    },
+    'gap-bow': {'ft': 12.3, 'main1': 32.6, 'main2': 33.3, 'main3': 36.8, 'main4': 40.0},
+    'sector-strength': {1: 0.000196, 2: 0.000148, 3: 0.000176, 4: 0.000177, 5: 0.000179, 6: 0.000148, 7: 0.000169, 8: 0.000143},
+    'voltage-tilt': {'ft': 0.0233, 'main1': 0.0242, 'main2': 0.0238, 'main3': 0.0235, 'main4': 0.0229},
 }
+# trimcoil-sectors: the tool's limit is a scale of the coils' field (1: all of it on those sectors),
+# which depends on the field the fit gives the coils; the coils' bmax (tcNNmb, bounds +-2 mT) is drawn
+# from this table instead, and the report's limit decides whether the case was visible.
+TC_SIZES = {"visible": (1.5e-3, 1.9e-3), "near": (5e-4, 1e-3)}
+
+
+def interp_limit(table, r, w):
+    """A harmonic bump's limit at (r, w), linear between the grid points (clamped)."""
+    rs = sorted({k[0] for k in table if k[0] > 0})
+    ws = sorted({k[1] for k in table if k[1] > 0})
+    r = min(max(r, rs[0]), rs[-1])
+    w = min(max(w, ws[0]), ws[-1])
+
+    def bracket(xs, x):
+        for a, b in zip(xs, xs[1:]):
+            if a <= x <= b:
+                return a, b, (x - a) / (b - a)
+        return xs[-1], xs[-1], 0.0
+    r0, r1, fr = bracket(rs, r)
+    w0, w1, fw = bracket(ws, w)
+    at = lambda rr, ww: table[(rr, ww)]
+    return ((1 - fr) * ((1 - fw) * at(r0, w0) + fw * at(r0, w1)) + fr * ((1 - fw) * at(r1, w0) + fw * at(r1, w1)))
+
+
 SIZE_PARAM = {"field-harmonic": "amplitude_T", "sector-strength": "relative", "trimcoil-sectors": "bmax_T",
               "gap-bow": "sagitta_mm", "voltage-tilt": "slope"}
+# Outside the catalogue the tool reports no limit: sizes from noiseless fits (turnfit-localsearch, the 48
+# variables, on turnfit-track --centroid turns of nominal + the change), so that the residual the variables
+# leave is about 0.015-0.03 mm rms ("visible") or 0.003-0.006 mm ("near"); the peaks' own errors are ~0.01 mm.
 OUTSIDE_SIZES = {
-    "profile-bump": {"visible": (0.012, 0.025), "near": (0.0025, 0.005)},   # A, relative
-    "transit-time": {"visible": (400.0, 700.0), "near": (100.0, 200.0)},    # gap width increase [mm]
-    "field-scale": {"visible": (6e-5, 1.2e-4), "near": (1.2e-5, 2.5e-5)},   # eps
+    "profile-bump": {"visible": (0.02, 0.035), "near": (0.004, 0.007)},    # A, relative
+    "transit-time": {"visible": (600.0, 900.0), "near": (150.0, 250.0)},    # gap width increase [mm]
+    "field-scale": {"visible": (1e-4, 2e-4), "near": (2e-5, 4e-5)},         # eps
 }
 # What counts as an honest approximation of an outside-catalogue change (see the doc).
 def approximates(outside, eff):
@@ -197,6 +251,11 @@ def uniform_size(rng, table, size):
     return rng.uniform(lo, hi)
 
 
+def limit_size(rng, limit, size):
+    """A size FACTORS[size] times the reference detection limit."""
+    return rng.uniform(*FACTORS[size]) * limit
+
+
 def tc_name(i):
     return "TC%d" % i
 
@@ -212,23 +271,24 @@ def draw_effect(rng, typ, size, dvars, bounds):
     if typ == "field-harmonic":
         n = rng.choice((0, 1, 2))
         r, w, ph = rng.uniform(2100.0, 4300.0), rng.uniform(200.0, 800.0), rng.uniform(0.0, 360.0)
-        amp = sign * uniform_size(rng, SIZES[(typ, n)], size)
+        amp = sign * limit_size(rng, interp_limit(LIMITS[(typ, n)], r, w), size)
         eff = {"type": typ, "n": n, "amplitude_T": amp, "phase_deg": 0.0 if n == 0 else ph, "r_mm": r, "width_mm": w}
     elif typ == "sector-strength":
-        eff = {"type": typ, "sector": rng.randint(1, SECTORS), "relative": sign * uniform_size(rng, SIZES[typ], size)}
+        eff_sector = rng.randint(1, SECTORS)
+        eff = {"type": typ, "sector": eff_sector, "relative": sign * limit_size(rng, LIMITS[typ][eff_sector], size)}
     elif typ == "gap-bow":
         cav = rng.choice(CAVITIES)
         c = next(x for x in NOMINAL["cavities"] if x["name"] == cav)
         most = 0.95 * (c["rmax_mm"] - c.get("rmin_mm", 0.0)) / 10  # |sagitta| <= a tenth of the gap
-        eff = {"type": typ, "cavity": cav, "sagitta_mm": sign * min(most, uniform_size(rng, SIZES[typ], size))}
+        eff = {"type": typ, "cavity": cav, "sagitta_mm": sign * min(most, limit_size(rng, LIMITS[typ][cav], size))}
     elif typ == "voltage-tilt":
         cav = rng.choice(CAVITIES)
-        eff = {"type": typ, "cavity": cav, "slope": sign * uniform_size(rng, SIZES[typ], size), "pivot_rho_n": 0.5}
+        eff = {"type": typ, "cavity": cav, "slope": sign * limit_size(rng, LIMITS[typ][cav], size), "pivot_rho_n": 0.5}
     elif typ == "trimcoil-sectors":
         length = rng.randint(3, 9)
         first = rng.randint(1, TC_WITH_VARIABLES - length + 1)
         parity = rng.choice(("odd", "even"))
-        mag = uniform_size(rng, SIZES[typ], size)
+        mag = uniform_size(rng, TC_SIZES, size)
         coils = list(range(first, first + length))
         for i in coils:
             v = tc_var(i)
@@ -415,14 +475,24 @@ def measure(case, args, tools, variables, work):
     dv_path = os.path.join(d, "truth-dvars.json")
     write_json(dv_path, case["dvars"])
     tm = truth_machine(case, d)
-    write_json(os.path.join(d, "case.json"), {k: v for k, v in case.items() if k != "dir"})
+    drawn = json.loads(json.dumps({k: v for k, v in case.items() if k not in ("dir", "failures", "notes")}))
+    case_path = os.path.join(d, "case.json")
     meas = os.path.join(d, "meas")
+    reuse = args.reuse and os.path.exists(case_path) and json.load(open(case_path, encoding="utf-8")) == drawn \
+        and os.path.exists(os.path.join(meas, "truth.json"))
+    case["reused"] = bool(reuse)
+    if not reuse:
+        for f in ("report.json", os.path.join("meas", "truth.json")):
+            if os.path.exists(os.path.join(d, f)):
+                os.remove(os.path.join(d, f))
+    write_json(case_path, drawn)
     cmd = [tools["synth"], tm, "--dvars", dv_path, "--seed", str(case["synth_seed"]), "--no-phase",
            "--particles", str(args.particles), "--threads", str(args.threads), "-q", "--out", meas]
     if case["noise"] == "paper":
         cmd += ["--scan-errors", "paper"]
     t0 = time.time()
-    run(cmd, "turnfit-synth")
+    if not reuse:
+        run(cmd, "turnfit-synth")
     case["synth_wall_s"] = time.time() - t0
     tdoc = json.load(open(os.path.join(meas, "truth.json"), encoding="utf-8"))
     for n, v in case["dvars"].items():
@@ -470,7 +540,7 @@ def matches(t, e):
     """Does the named effect e (report entry) match the true effect t? (rules in the doc)"""
     if e.get("type") != t["type"]:
         return False
-    p = e.get("parameters", e)
+    p = params_of(e)
     typ = t["type"]
     if typ == "field-harmonic":
         if int(p.get("n", 1)) != t["n"]:
@@ -486,9 +556,13 @@ def matches(t, e):
 
 
 def params_of(e):
-    p = dict(e.get("parameters", {}))
-    for k, v in e.items():  # an entry may carry its parameters at top level, as in a machine file
-        if k not in ("type", "parameters", "sigma", "delta_chi2", "delta_bic", "held_out_gain", "status", "label"):
+    """An effect's parameters, whether it is a report effect ({type, parameters}), a candidate or a
+    competitor ({type, instance, linearized estimates at top level}) or a machine-file entry."""
+    p = dict(e.get("parameters") or {})
+    for k, v in (e.get("instance") or {}).items():
+        p.setdefault(k, v)
+    for k, v in e.items():
+        if k not in ("type", "parameters", "instance", "sigma", "label", "status", "detection_limit", "absorbed_by"):
             p.setdefault(k, v)
     return p
 
@@ -525,10 +599,29 @@ def param_checks(t, e):
 
 
 def candidate_for(t, report):
+    """The report's candidate for the true effect: among those matching it, the nearest (a harmonic's
+    grid bump nearest in centre and width; a bump before the harmonic at every radius), then the
+    strongest status."""
+    def near(x):
+        if t["type"] != "field-harmonic":
+            return 0.0
+        p = params_of(x)
+        if p.get("r_mm") is None:
+            return 1e9
+        return abs(float(p["r_mm"]) - t["r_mm"]) / t["width_mm"] + abs(float(p["width_mm"]) - t["width_mm"]) / t["width_mm"]
+    order = {"selected": 0, "selected-ambiguous": 1, "ambiguous": 2, "candidate": 3, "not-seen": 4, "absorbed": 5}
     c = [x for x in report.get("candidates", []) if matches(t, x)]
-    order = {"selected": 0, "ambiguous": 1, "rejected": 2, "absorbed": 3, "below-limit": 4}
-    c.sort(key=lambda x: order.get(x.get("status"), 9))
+    c.sort(key=lambda x: (near(x), order.get(x.get("status"), 9)))
     return c[0] if c else None
+
+
+def limit_of(t, cand):
+    """The candidate's detection limit, and the truth's size in its units (trimcoil-sectors: the scale, 1 = the coils'
+    whole field on those sectors, which is what the truth has)."""
+    lim = (cand or {}).get("detection_limit") or {}
+    if t["type"] == "trimcoil-sectors":
+        return lim.get("scale"), 1.0
+    return lim.get(SIZE_PARAM[t["type"]]), t["_size"]
 
 
 def describe(e):
@@ -586,9 +679,8 @@ def score(case, report):
         hit = [i for i, e in enumerate(named) if matches(t, e)]
         cand = candidate_for(t, report)
         r["candidate_status"] = cand.get("status") if cand else None
-        lim = (cand or {}).get("detection_limit") or {}
-        pname = SIZE_PARAM[t["type"]]
-        r["detection_limit"] = lim.get(pname) if pname in lim else (next(iter(lim.values())) if len(lim) == 1 else None)
+        r["detection_limit"], r["size_in_limit_units"] = limit_of(t, cand)
+        r["visible_fraction"] = (cand or {}).get("visible_fraction")
         if hit:
             used.update(hit)
             r["outcome"] = "right"
@@ -596,12 +688,13 @@ def score(case, report):
         elif any(matches(t, e) for g in groups for e in g):
             r["outcome"] = "ambiguous-right"
             r["params"] = []
-        elif cand and cand.get("status") in ("absorbed", "below-limit"):
-            lim_v = r["detection_limit"]
-            if cand.get("status") == "below-limit" and lim_v and t["_size"] > 2 * abs(float(lim_v)):
+        elif cand and cand.get("status") in ("absorbed", "not-seen"):
+            lim_v, size_v = r["detection_limit"], r["size_in_limit_units"]
+            if lim_v and size_v > 2 * abs(float(lim_v)):
                 r["outcome"] = "missed"
-                case["notes"].append("%s: reported below its detection limit %.3g, but the truth's size is %.3g "
-                                     "(over twice the limit): counted as missed" % (r["truth"], lim_v, t["_size"]))
+                case["notes"].append("%s: its candidate is %s with detection limit %.3g, but the truth's size is %.3g "
+                                     "(over twice the limit): counted as missed" % (r["truth"], cand.get("status"),
+                                                                                    lim_v, size_v))
             else:
                 r["outcome"] = "not visible"
             r["params"] = []
@@ -831,6 +924,8 @@ def main(argv):
     ap.add_argument("--markdown-out", help="write the tables as markdown (for bench/RESULTS.md)")
     ap.add_argument("--min-right", type=float, default=0.9, help="fraction of visible cases named right (0.9)")
     ap.add_argument("--dry-run", action="store_true", help="stop before turnfit-diagnose")
+    ap.add_argument("--reuse", action="store_true",
+                    help="with --work: keep a case's synth and diagnose outputs when its draw (case.json) is unchanged")
     try:
         args = ap.parse_args(argv)
         args.kinds = parse_list(args.kinds, KINDS, "--kinds")
@@ -884,8 +979,11 @@ def main(argv):
                 rep = os.path.join(case["dir"], "report.json")
                 ru0 = resource.getrusage(resource.RUSAGE_CHILDREN)
                 t0 = time.time()
-                run([tools["diagnose"], case["problem"], "-o", rep, "--markdown", os.path.join(case["dir"], "report.md"),
-                     "--threads", str(args.threads), "-q"], "turnfit-diagnose")
+                if not (case["reused"] and os.path.exists(rep)):
+                    run([tools["diagnose"], case["problem"], "-o", rep, "--markdown",
+                         os.path.join(case["dir"], "report.md"), "--threads", str(args.threads), "-q"], "turnfit-diagnose")
+                else:
+                    case["notes"].append("reused the synth and diagnose outputs of an earlier run (--reuse)")
                 case["diagnose_wall_s"] = time.time() - t0
                 ru1 = resource.getrusage(resource.RUSAGE_CHILDREN)
                 case["diagnose_cpu_s"] = (ru1.ru_utime - ru0.ru_utime) + (ru1.ru_stime - ru0.ru_stime)
@@ -902,7 +1000,8 @@ def main(argv):
     finally:
         if args.json:
             write_json(args.json, {"master_seed": master, "args": {k: v for k, v in vars(args).items()},
-                                   "sizes": {str(k): v for k, v in SIZES.items()}, "cases": cases})
+                                   "limits": {str(k): {str(a): b for a, b in v.items()} for k, v in LIMITS.items()},
+                                   "factors": FACTORS, "tc_sizes": TC_SIZES, "outside_sizes": OUTSIDE_SIZES, "cases": cases})
         if not args.work:
             shutil.rmtree(work, ignore_errors=True)
 
