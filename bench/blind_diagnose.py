@@ -24,28 +24,36 @@ so adding cases, kinds or configurations never changes the cases already drawn.
    controls too (a control is a real fit without an effect, not the nominal machine). Then the
    effect's instance and size:
      field-harmonic    n in {0, 1, 2}, r_mm ~ U(2100, 4300) (the turns' radii), width_mm ~
-                       U(200, 800), phase_deg ~ U(0, 360), amplitude_T = +-SIZE
+                       U(200, 800), phase_deg ~ U(0, 360) (n = 0: 0), amplitude_T = +-SIZE
      sector-strength   sector 1..8, relative = +-SIZE
      trimcoil-sectors  a contiguous group of 3-9 coils within TC1-TC16 on the odd or the even
-                       sectors; each coil of the group gets bmax (its tcNNmb) = s u SIZE,
-                       one sign s for the group, u ~ U(0.5, 1.5), within 95 % of its bound.
-                       TC17 and TC18 are left out: they have no design variable, so the model
-                       (bmax 0) could not hold their field on any sector and the case would
-                       test a missing coil, not a coil on the wrong sectors
-     gap-bow           cavity main1-4 or ft, sagitta_mm = +-SIZE (at most a tenth of the gap)
+                       sectors; each coil of the group gets bmax (its tcNNmb) = s u B, one
+                       sign s for the group, u ~ U(0.5, 1.5), B ~ U(TC_SIZES), within 95 % of
+                       the bound (+-2 mT). TC17 and TC18 are left out: they have no design
+                       variable, so the model (bmax 0) could not hold their field on any sector
+                       and the case would test a missing coil, not a coil on the wrong sectors
+     gap-bow           cavity main1-4 or ft, sagitta_mm = +-SIZE (at most 95 % of a tenth of
+                       the gap, turnfit-machine(5)'s bound)
      voltage-tilt      cavity main1-4 or ft, slope = +-SIZE, pivot_rho_n 0.5: the pivot and
                        the cavity's voltage (a design variable) are one degree of freedom
                        (1 + slope (rho - pivot) = const x (1 + slope' rho)), so only the
                        slope is compared
-   SIZE ~ U(lo, hi) of the type's row in SIZES ("visible": clearly above the detection limit
-   turnfit-diagnose reports, "near": around it); the tables were calibrated on tuning master
-   seeds only (bench/RESULTS.md says which), never on the report seeds.
-   Outside the catalogue (OUTSIDE): "profile-bump" multiplies a main cavity's radial voltage
-   profile by 1 + A exp(-(rho - rho0)^2 / (2 w^2)) (rho0 ~ U(0.25, 0.6): the beam's rho_n runs
-   0.18-0.63; w ~ U(0.03, 0.08)), written as a new profile file; "transit-time" changes a main
-   cavity's gap_width_mm (the transit-time factor falls with the gap and rises with the speed,
-   so the voltage seen changes with radius); "field-scale" scales the whole field map by
-   1 + eps (no design variable scales the main field; the trim coils can take up part).
+   SIZE = f x L: L is the detection limit turnfit-diagnose reported for that instance (sector,
+   cavity; a harmonic's n, interpolated between its grid bumps in r_mm and width_mm) on the
+   tuning master seed (LIMITS, with the seed named there), f ~ U(2.5, 5) for "visible" and
+   U(0.7, 1.4) for "near" (FACTORS). So the sizes follow the tool's own sensitivity, which
+   differs by two orders of magnitude between instances (a first harmonic at 2.7 m against one
+   at 4.25 m), and "visible" means visible by the tool's own account at low noise with free
+   variables. At paper noise the limits grow and with priors they shrink: the report's own
+   limit then decides (Scoring, "not visible"). The tables were set on tuning seeds only,
+   never on the report seeds.
+   Outside the catalogue (OUTSIDE; size ~ U(OUTSIDE_SIZES), set from noiseless fits, see there):
+   "profile-bump" multiplies a main cavity's radial voltage profile by
+   1 + A exp(-(rho - rho0)^2 / (2 w^2)) (rho0 ~ U(0.25, 0.6): the beam's rho_n runs 0.18-0.63;
+   w ~ U(0.03, 0.08)), written as a new profile file; "transit-time" widens a main cavity's
+   gap_width_mm (the transit-time factor falls with the gap and rises with the speed, so the
+   voltage seen changes with radius); "field-scale" scales the whole field map by 1 + eps (no
+   design variable scales the main field; the trim coils can take up part of it).
 3. the truth machine: share/turnfit/ring8/machine.json with its map, profile and table paths
    made absolute (as bench/effect_signatures.sh does), the effects in "effects" and the
    outside change applied; measured with turnfit-synth --dvars TRUTH --seed SEED --no-phase
@@ -59,9 +67,11 @@ so adding cases, kinds or configurations never changes the cases already drawn.
    {name, lower, upper, sigma} with the honest prior of the draw: sigma = a (upper - lower) /
    sqrt(3) (the rms of U(-a, a) of the range), added in quadrature to synth's run-to-run drift
    where it moves a variable (rinit 0.65 mm, prinit 0.3 mrad x beta gamma, voltages 1e-4
-   relative; blind_localsearch's effective_truth()), and for the coils of a trimcoil-sectors
-   group the rms of their draw, 1.04 SIZE. A prior narrower than the truth's spread would be
-   a false prior and turn design errors into "effects".
+   relative; blind_localsearch's effective_truth(); at --noise paper synth's drift is smaller,
+   0.64 of that, and the prior keeps the default: wider than the truth's spread, never
+   narrower), and for the coils of a trimcoil-sectors group the rms of their draw, 1.04 B.
+   A prior narrower than the truth's spread would be a false prior and turn design errors
+   into "effects".
 5. turnfit-diagnose PROBLEM -o report.json --markdown report.md --threads T -q; then scoring.
 
 Scoring (per true effect, then per case):
@@ -95,7 +105,8 @@ Scoring (per true effect, then per case):
    outside the catalogue: right when the verdict is "unexplained"; "approximated" (counted as
      right, shown apart) when the report names only effects of the kind's honest approximation
      (profile-bump, transit-time: voltage-tilt on the same cavity; field-scale:
-     field-harmonic n = 0) and its chi2/dof after the refit is within 1 + 3 sqrt(2/dof) (the
+     field-harmonic n = 0 or sector-strength of any sector, since the same relative on every
+     sector is exactly the scaled field, turnfit-machine(5)) and its chi2/dof after the refit is within 1 + 3 sqrt(2/dof) (the
      approximation explains the data to within noise; dof = peaks - 48); "missed" when it says
      "nothing-missing"; "wrong" otherwise. Only its drawn size says whether it is visible.
    parameters: for each right effect, each continuous parameter (field-harmonic amplitude_T,
@@ -226,7 +237,9 @@ def approximates(outside, eff):
     if outside["kind"] in ("profile-bump", "transit-time"):
         return eff.get("type") == "voltage-tilt" and eff.get("cavity") == outside["cavity"]
     if outside["kind"] == "field-scale":
-        return eff.get("type") == "field-harmonic" and int(eff.get("n", 1)) == 0
+        # the same relative on every sector is exactly the scaled field (turnfit-machine(5), sector-strength)
+        return eff.get("type") == "sector-strength" or (
+            eff.get("type") == "field-harmonic" and int(params_of(eff).get("n", 1)) == 0)
     return False
 
 
