@@ -58,6 +58,11 @@ TEST_CASE("diagnose noise: white scatter under a smooth trend is recovered; peak
   ne = estimate_noise(te, e, m);
   CHECK(ne.scatter_mm[0] < 0.008);
   CHECK(ne.sigma_mm[10] == Approx(0.02).epsilon(0.15));
+  // Peaks that claim 0.03 mm where the scatter is 0.02 mm: the trust comes out near 2/3.
+  const TurnTable over = one_probe(n, 0.03);
+  ne = estimate_noise(over, e, m);
+  CHECK(ne.trust[0] == Approx(2.0 / 3).epsilon(0.2));
+  CHECK(ne.sigma_mm[10] == Approx(0.02).epsilon(0.15));
   // A single bad turn is an outlier and does not inflate the scatter.
   std::vector<double> e2 = e;
   e2[200] += 0.5;

@@ -61,13 +61,16 @@ const std::vector<std::string>& catalogue_types();
 /// s_{i-1}^2 + 4 s_i^2 + s_{i+1}^2 with s_i^2 = s_p^2 + u_i^2 (u_i the peak's own uncertainty,
 /// peakfind's r_err_mm, 0 without it). s_p is found by the method of moments on the median
 /// (robust to single bad peaks): the median of d_i^2 / var_i is that of chi2 with one degree of
-/// freedom, 0.4549. A smooth trend (any polynomial of degree 1 over three turns) leaves no
+/// freedom, 0.4549. With peak uncertainties, sigma_i^2 = s_p^2 + c_p^2 u_i^2: for each trust c_p
+/// on a grid (0.2-3) s_p from that median condition, and c_p by the likelihood of the second
+/// differences (each capped at 4 sigma). A smooth trend (any polynomial of degree 1 over three turns) leaves no
 /// second difference; an oscillation of q cycles per turn is amplified by 4 sin^2(pi q).
 struct NoiseEstimate {
   std::vector<std::string> probes;
   std::vector<double> scatter_mm;     ///< s_p per probe
+  std::vector<double> trust;          ///< c_p per probe (1 without peak uncertainties)
   std::vector<size_t> differences;    ///< second differences it rests on
-  std::vector<double> sigma_mm;       ///< per measured point: sqrt(s_p^2 + u_i^2)
+  std::vector<double> sigma_mm;       ///< per measured point: sqrt(s_p^2 + c_p^2 u_i^2)
   std::vector<unsigned char> outlier; ///< per point: single outliers (beyond 5 sigma of the running median of 5)
 };
 NoiseEstimate estimate_noise(const TurnTable& measured, const std::vector<double>& residual_mm,
@@ -126,7 +129,9 @@ struct FitFigures {
 /// What the diagnosis found (the report's content; the app writes it).
 struct Diagnosis {
   std::string verdict;                 ///< nothing-missing | missing-physics | unexplained
-  NoiseEstimate noise;
+  NoiseEstimate noise;                 ///< the last round's (estimated anew each round from the residual left)
+  std::vector<std::vector<double>> noise_rounds;  ///< each round's per-probe scatter
+  double before_first_noise_chi2 = 0;  ///< the base fit's chi2 with the first round's noise
   Located located_before, located_after;
   nlohmann::json effects = nlohmann::json::array();     ///< selected: machine-file entries with sigma and scores
   nlohmann::json ambiguous = nlohmann::json::array();

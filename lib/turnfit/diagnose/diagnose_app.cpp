@@ -112,14 +112,17 @@ json diagnosis_report(const TurnPatternProblem& p, const Diagnosis& d, const std
   json noise = json::object();
   for (size_t k = 0; k < d.noise.probes.size(); ++k)
     noise[d.noise.probes[k]] = {{"scatter_mm", d.noise.scatter_mm[k]},
+                                {"peak_trust", d.noise.trust[k]},
                                 {"second_differences", d.noise.differences[k]},
-                                {"source", "median of the residual's second differences along consecutive turns, "
-                                           "with the peaks' own r_err_mm in quadrature"}};
+                                {"source", "the residual's second differences along consecutive turns: sigma^2 = "
+                                           "scatter^2 + (peak_trust r_err_mm)^2"}};
   size_t outliers = 0;
   for (unsigned char o : d.noise.outlier) outliers += o != 0;
-  j["noise"] = {{"probes", noise}, {"outliers", outliers}};
+  j["noise"] = {{"probes", noise}, {"outliers", outliers}, {"scatter_by_round_mm", d.noise_rounds},
+                {"before_chi2_first_noise", d.before_first_noise_chi2}};
   // The base fit: localsearch's least squares with its own sigma, then refitted with the noise.
   json base = {{"evaluations", d.base_fit.evaluations},
+               {"wall_s", d.base_fit.wall_s},
                {"chi2_dof_localsearch", jnum(d.base_fit.chi2_dof)},
                {"linf_mm", jnum(d.base_fit.after.linf_mm)},
                {"rms_mm", jnum(d.base_fit.after.rms_mm)},
@@ -159,7 +162,8 @@ std::string diagnosis_markdown(const TurnPatternProblem& p, const json& r) {
        << num(r[k]["chi2_per_dof"]) << " | " << num(r[k]["held_out_chi2_per_point"]) << " |\n";
   md << "\nNoise, estimated from the residual's second differences (peak uncertainties added in quadrature):";
   for (auto it = r["noise"]["probes"].begin(); it != r["noise"]["probes"].end(); ++it)
-    md << " " << it.key() << " " << num(it.value()["scatter_mm"]) << " mm;";
+    md << " " << it.key() << " " << num(it.value()["scatter_mm"]) << " mm (peak uncertainties times "
+       << num(it.value()["peak_trust"], 2) << ");";
   md << " " << r["noise"]["outliers"] << " single outlier(s) left out.\n\n";
 
   if (!r["effects"].empty()) {

@@ -42,6 +42,10 @@ NoiseEstimate estimate_noise(const TurnTable& measured, const std::vector<double
   out.outlier.assign(n, 0);
   for (size_t p = 0; p < measured.probes.size(); ++p) {
     auto [b, end] = measured.probe_range(static_cast<int>(p));
+    // The scatter s and the trust c in the peaks' own uncertainties: sigma_i^2 = s^2 + c^2 u_i^2.
+    // For each c on a grid, s from the median condition (robust); c by the likelihood of the
+    // second differences (each capped at 4 sigma, so a bad triple cannot steer it).
+    double trust = 1;
     auto solve = [&](const std::vector<unsigned char>& skip, size_t& used) {
       std::vector<std::array<size_t, 3>> triples;
       for (size_t i = b + 1; i + 1 < end; ++i) {
@@ -54,26 +58,47 @@ NoiseEstimate estimate_noise(const TurnTable& measured, const std::vector<double
       }
       used = triples.size();
       if (triples.size() < 3) return std::nan("");
-      auto ratio_median = [&](double s) {
-        std::vector<double> q;
-        q.reserve(triples.size());
-        for (const auto& t : triples) {
-          const double d2 = e[t[0]] - 2 * e[t[1]] + e[t[2]];
-          const double u0 = peak_error(measured.points[t[0]]), u1 = peak_error(measured.points[t[1]]),
-                       u2 = peak_error(measured.points[t[2]]);
-          const double var = 6 * s * s + u0 * u0 + 4 * u1 * u1 + u2 * u2;
-          q.push_back(d2 * d2 / std::max(var, 1e-300));
-        }
+      std::vector<double> d2(triples.size()), uu(triples.size());
+      bool any_u = false;
+      for (size_t k = 0; k < triples.size(); ++k) {
+        const auto& t = triples[k];
+        d2[k] = std::pow(e[t[0]] - 2 * e[t[1]] + e[t[2]], 2);
+        const double u0 = peak_error(measured.points[t[0]]), u1 = peak_error(measured.points[t[1]]),
+                     u2 = peak_error(measured.points[t[2]]);
+        uu[k] = u0 * u0 + 4 * u1 * u1 + u2 * u2;
+        any_u = any_u || uu[k] > 0;
+      }
+      auto ratio_median = [&](double sc, double c) {
+        std::vector<double> q(triples.size());
+        for (size_t k = 0; k < q.size(); ++k) q[k] = d2[k] / std::max(6 * sc * sc + c * c * uu[k], 1e-300);
         return median(q);
       };
-      if (ratio_median(floor_mm) <= kChi2Median1) return floor_mm;
-      double lo = floor_mm, hi = 1.0;
-      while (ratio_median(hi) > kChi2Median1 && hi < 1e4) hi *= 4;
-      for (int it = 0; it < 80; ++it) {
-        const double mid = std::sqrt(lo * hi);
-        (ratio_median(mid) > kChi2Median1 ? lo : hi) = mid;
+      auto scatter_for = [&](double c) {
+        if (ratio_median(floor_mm, c) <= kChi2Median1) return floor_mm;
+        double lo = floor_mm, hi = 1.0;
+        while (ratio_median(hi, c) > kChi2Median1 && hi < 1e4) hi *= 4;
+        for (int it = 0; it < 60; ++it) {
+          const double mid = std::sqrt(lo * hi);
+          (ratio_median(mid, c) > kChi2Median1 ? lo : hi) = mid;
+        }
+        return std::sqrt(lo * hi);
+      };
+      if (!any_u) {
+        trust = 1;
+        return scatter_for(1);
       }
-      return std::sqrt(lo * hi);
+      double best_ll = -1e300, best_s = floor_mm;
+      for (int g = 0; g <= 48; ++g) {
+        const double c = 0.2 * std::pow(15.0, g / 48.0);  // 0.2 .. 3
+        const double sc = scatter_for(c);
+        double ll = 0;
+        for (size_t k = 0; k < d2.size(); ++k) {
+          const double var = std::max(6 * sc * sc + c * c * uu[k], 1e-300);
+          ll -= 0.5 * (std::min(d2[k] / var, 16.0) + std::log(var));
+        }
+        if (ll > best_ll) best_ll = ll, best_s = sc, trust = c;
+      }
+      return best_s;
     };
     std::vector<unsigned char> none(n, 0);
     size_t used = 0;
@@ -96,16 +121,17 @@ NoiseEstimate estimate_noise(const TurnTable& measured, const std::vector<double
         std::vector<double> w;
         for (size_t k = (i >= b + 2 ? i - 2 : b); k < std::min(end, i + 3); ++k)
           if (matched[k]) w.push_back(e[k]);
-        const double sig = std::sqrt(s * s + peak_error(measured.points[i]) * peak_error(measured.points[i]));
+        const double sig = std::sqrt(s * s + std::pow(trust * peak_error(measured.points[i]), 2));
         out.outlier[i] = w.size() >= 4 && std::fabs(e[i] - median(w)) > 5 * sig;
       }
       const double again = solve(out.outlier, used);
       if (!std::isnan(again)) s = again;
     }
     out.scatter_mm.push_back(s);
+    out.trust.push_back(trust);
     out.differences.push_back(used);
     for (size_t i = b; i < end; ++i) {
-      const double u = peak_error(measured.points[i]);
+      const double u = trust * peak_error(measured.points[i]);
       out.sigma_mm[i] = std::sqrt(s * s + u * u);
     }
   }
