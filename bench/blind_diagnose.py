@@ -27,9 +27,10 @@ so adding cases, kinds or configurations never changes the cases already drawn.
                        U(200, 800), phase_deg ~ U(0, 360) (n = 0: 0), amplitude_T = +-SIZE
      sector-strength   sector 1..8, relative = +-SIZE
      trimcoil-sectors  a contiguous group of 3-9 coils within TC1-TC16 on the odd or the even
-                       sectors; each coil of the group gets bmax (its tcNNmb) = s u B, one
-                       sign s for the group, u ~ U(0.5, 1.5), B ~ U(TC_SIZES), within 95 % of
-                       the bound (+-2 mT). TC17 and TC18 are left out: they have no design
+                       sectors; each coil of the group gets bmax (its tcNNmb) = s u B, a sign
+                       s of its own (as operators set them; one sign for the whole group moves
+                       the isochronism so far that the turn pattern breaks up), u ~ U(0.5, 1.5),
+                       B ~ U(TC_SIZES), within 95 % of the bound (+-2 mT). TC17 and TC18 are left out: they have no design
                        variable, so the model (bmax 0) could not hold their field on any sector
                        and the case would test a missing coil, not a coil on the wrong sectors
      gap-bow           cavity main1-4 or ft, sagitta_mm = +-SIZE (at most 95 % of a tenth of
@@ -163,45 +164,51 @@ VOLTAGE_VARS = ("vmaincav1", "vmaincav2", "vmaincav3", "vmaincav4", "vftcav", "v
 
 # Sizes. A size is a factor times the detection limit turnfit-diagnose reported for that instance on the
 # tuning master seed 728291908 (bench/RESULTS.md, "Blind suite for turnfit-diagnose"; low noise, free
-# variables; the median over its first three cases): visible U(2.5, 5), near U(0.7, 1.4). A harmonic's limit
+# variables; turnfit-diagnose of 205b03f; the median over its cases 1-7 and 9-12, case08's turn pattern
+# having broken up): visible U(2.5, 5), near U(0.7, 1.4). A harmonic's limit
 # is interpolated linearly in r_mm between the tool's grid bumps (every 250 mm) and in width_mm between its
 # widths 250 and 500 mm (clamped to the grid). The limits were never read from the report seeds.
 FACTORS = {"visible": (2.5, 5.0), "near": (0.7, 1.4)}
 LIMITS = {
-    ('field-harmonic', 0): {
-        (2000.0, 250.0): 0.000155, (2000.0, 500.0): 7.61e-05, (2250.0, 250.0): 6.62e-05,
-        (2250.0, 500.0): 5.56e-05, (2500.0, 250.0): 3.82e-05, (2500.0, 500.0): 4.59e-05,
-        (2750.0, 250.0): 2.97e-05, (2750.0, 500.0): 3.38e-05, (3000.0, 250.0): 2.09e-05,
-        (3000.0, 500.0): 2.3e-05, (3250.0, 250.0): 1.67e-05, (3250.0, 500.0): 1.81e-05,
-        (3500.0, 250.0): 1.7e-05, (3500.0, 500.0): 1.72e-05, (3750.0, 250.0): 2.25e-05,
-        (3750.0, 500.0): 1.89e-05, (4000.0, 250.0): 2.56e-05, (4000.0, 500.0): 2.32e-05,
-        (4250.0, 250.0): 3.63e-05, (4250.0, 500.0): 3.29e-05,
+    ("field-harmonic", 0): {
+        (2000.0, 250.0): 0.000119, (2000.0, 500.0): 4.7e-05, (2250.0, 250.0): 4.32e-05,
+        (2250.0, 500.0): 2.85e-05, (2500.0, 250.0): 2.9e-05, (2500.0, 500.0): 2.02e-05,
+        (2750.0, 250.0): 2.56e-05, (2750.0, 500.0): 1.66e-05, (3000.0, 250.0): 2.8e-05,
+        (3000.0, 500.0): 1.53e-05, (3250.0, 250.0): 2.27e-05, (3250.0, 500.0): 1.54e-05,
+        (3500.0, 250.0): 2.64e-05, (3500.0, 500.0): 1.79e-05, (3750.0, 250.0): 2.67e-05,
+        (3750.0, 500.0): 1.91e-05, (4000.0, 250.0): 2.55e-05, (4000.0, 500.0): 1.93e-05,
+        (4250.0, 250.0): 2.6e-05, (4250.0, 500.0): 2.27e-05,
     },
-    ('field-harmonic', 1): {
-        (0, 0): 8.63e-05, (2000.0, 250.0): 0.000166, (2000.0, 500.0): 0.000132, (2250.0, 250.0): 9.29e-05,
-        (2250.0, 500.0): 0.000116, (2500.0, 250.0): 8.02e-05, (2500.0, 500.0): 0.000115,
-        (2750.0, 250.0): 7.47e-05, (2750.0, 500.0): 0.000123, (3000.0, 250.0): 0.000149,
-        (3000.0, 500.0): 0.000163, (3250.0, 250.0): 0.000166, (3250.0, 500.0): 0.000243,
-        (3500.0, 250.0): 0.000231, (3500.0, 500.0): 0.000423, (3750.0, 250.0): 0.000225,
-        (3750.0, 500.0): 0.000613, (4000.0, 250.0): 0.000468, (4000.0, 500.0): 0.000644,
-        (4250.0, 250.0): 0.00104, (4250.0, 500.0): 0.00127,
+    ("field-harmonic", 1): {
+        (0, 0): 9.17e-05, (2000.0, 250.0): 0.000139, (2000.0, 500.0): 0.000166, (2250.0, 250.0): 0.000113,
+        (2250.0, 500.0): 0.000134, (2500.0, 250.0): 9.78e-05, (2500.0, 500.0): 0.00013,
+        (2750.0, 250.0): 0.000132, (2750.0, 500.0): 0.000139, (3000.0, 250.0): 0.000207,
+        (3000.0, 500.0): 0.000163, (3250.0, 250.0): 0.00021, (3250.0, 500.0): 0.000251,
+        (3500.0, 250.0): 0.000335, (3500.0, 500.0): 0.000471, (3750.0, 250.0): 0.000465,
+        (3750.0, 500.0): 0.000773, (4000.0, 250.0): 0.000495, (4000.0, 500.0): 0.000929,
+        (4250.0, 250.0): 0.00116, (4250.0, 500.0): 0.000963,
     },
-    ('field-harmonic', 2): {
-        (0, 0): 0.000764, (2000.0, 250.0): 0.000985, (2000.0, 500.0): 0.00174, (2250.0, 250.0): 0.000887,
-        (2250.0, 500.0): 0.00198, (2500.0, 250.0): 0.000786, (2500.0, 500.0): 0.00178,
-        (2750.0, 250.0): 0.000876, (2750.0, 500.0): 0.00133, (3000.0, 250.0): 0.0011, (3000.0, 500.0): 0.00184,
-        (3250.0, 250.0): 0.00129, (3250.0, 500.0): 0.00193, (3500.0, 250.0): 0.0014, (3500.0, 500.0): 0.00181,
-        (3750.0, 250.0): 0.00155, (3750.0, 500.0): 0.00157, (4000.0, 250.0): 0.00173, (4000.0, 500.0): 0.00125,
-        (4250.0, 250.0): 0.00118, (4250.0, 500.0): 0.00111,
+    ("field-harmonic", 2): {
+        (0, 0): 0.00105, (2000.0, 250.0): 0.00108, (2000.0, 500.0): 0.00185, (2250.0, 250.0): 0.00107,
+        (2250.0, 500.0): 0.00178, (2500.0, 250.0): 0.000895, (2500.0, 500.0): 0.00155,
+        (2750.0, 250.0): 0.00108, (2750.0, 500.0): 0.00144, (3000.0, 250.0): 0.00185, (3000.0, 500.0): 0.00183,
+        (3250.0, 250.0): 0.0017, (3250.0, 500.0): 0.0023, (3500.0, 250.0): 0.00256, (3500.0, 500.0): 0.00155,
+        (3750.0, 250.0): 0.00168, (3750.0, 500.0): 0.00152, (4000.0, 250.0): 0.00195, (4000.0, 500.0): 0.0018,
+        (4250.0, 250.0): 0.0018, (4250.0, 500.0): 0.00158,
     },
-    'gap-bow': {'ft': 12.3, 'main1': 32.6, 'main2': 33.3, 'main3': 36.8, 'main4': 40.0},
-    'sector-strength': {1: 0.000196, 2: 0.000148, 3: 0.000176, 4: 0.000177, 5: 0.000179, 6: 0.000148, 7: 0.000169, 8: 0.000143},
-    'voltage-tilt': {'ft': 0.0233, 'main1': 0.0242, 'main2': 0.0238, 'main3': 0.0235, 'main4': 0.0229},
+    "gap-bow": {"ft": 13.4, "main1": 36.6, "main2": 35.8, "main3": 34.0, "main4": 36.5},
+    "sector-strength": {1: 9.82e-05, 2: 9.4e-05, 3: 0.000103, 4: 9.37e-05,
+                        5: 9.91e-05, 6: 0.000105, 7: 0.000101, 8: 9.53e-05},
+    "voltage-tilt": {"ft": 0.0319, "main1": 0.0286, "main2": 0.0273, "main3": 0.0269, "main4": 0.0273},
 }
 # trimcoil-sectors: the tool's limit is a scale of the coils' field (1: all of it on those sectors),
 # which depends on the field the fit gives the coils; the coils' bmax (tcNNmb, bounds +-2 mT) is drawn
 # from this table instead, and the report's limit decides whether the case was visible.
-TC_SIZES = {"visible": (1.5e-3, 1.9e-3), "near": (5e-4, 1e-3)}
+# The coils' signs are drawn one by one, as operators set them (params.json's truth: TC7 +1.2, TC10 -0.9,
+# TC13 +0.8 mT): nine coils of one sign at 1.6 mT (tuning seed, case08) put half of 1.6 mT more field on
+# the odd sectors than the model's (nearly) isochronous field, and the beam lost its turn pattern (RRL
+# turns merged, 33 misnumbered by peakfind; the raw signature 1.6 m).
+TC_SIZES = {"visible": (1.0e-3, 1.6e-3), "near": (4e-4, 8e-4)}
 
 
 def interp_limit(table, r, w):
@@ -306,7 +313,7 @@ def draw_effect(rng, typ, size, dvars, bounds):
         for i in coils:
             v = tc_var(i)
             lo, hi = bounds[v]
-            val = sign * mag * rng.uniform(0.5, 1.5)
+            val = rng.choice((-1.0, 1.0)) * mag * rng.uniform(0.5, 1.5)
             extra[v] = min(max(val, 0.95 * lo), 0.95 * hi)
         eff = {"type": typ, "coils": [tc_name(i) for i in coils],
                "sectors": [s for s in range(1, SECTORS + 1) if (s % 2 == 1) == (parity == "odd")]}
@@ -793,13 +800,19 @@ def row_text(c):
 
 
 def confusion(cases, size):
-    """Rows: true effect type (per true effect), control, outside kind; columns: what the report said."""
-    cols = list(TYPES) + ["wrong instance", "ambiguous-right", "not visible", "nothing", "unexplained"]
+    """One entry per true effect (per case for controls and outside-catalogue changes): the column is
+    what the report said about it. A true effect not named right goes under the first false effect
+    named (the report lists them in the order selected: the strongest first), "wrong instance" if that
+    has the true type, else "nothing" or "unexplained" by the verdict. Further false effects of the
+    case are counted in "more false alarms" (on the case's first row)."""
+    cols = list(TYPES) + ["wrong instance", "ambiguous-right", "not visible", "nothing", "unexplained",
+                          "more false alarms"]
     rows = {}
 
-    def add(row, col):
-        rows.setdefault(row, {}).setdefault(col, 0)
-        rows[row][col] += 1
+    def add(row, col, n=1):
+        if n:
+            rows.setdefault(row, {}).setdefault(col, 0)
+            rows[row][col] += n
 
     for c in cases:
         if "outcome" not in c:
@@ -808,29 +821,33 @@ def confusion(cases, size):
             continue
         if c["kind"] != "control" and size_class(c) != size:
             continue
-        fa_types = [t for t, d in zip(c["named_types"], c["named"]) if d in c["false_alarms"]]
+        fa = [(t, d) for t, d in zip(c["named_types"], c["named"]) if d in c["false_alarms"]]
+        nothing = "unexplained" if c["verdict"] == "unexplained" else "nothing"
         if c["kind"] in ("control", "outside"):
             row = "none (control)" if c["kind"] == "control" else "outside: " + c["outside"]["kind"]
-            if c["named_types"]:
-                for t in c["named_types"]:
-                    add(row, t)
+            if c["kind"] == "outside" and c["outcome"] == "approximated":
+                add(row, c["named_types"][0])
+                add(row, "more false alarms", len(fa))
+            elif fa:
+                add(row, fa[0][0])
+                add(row, "more false alarms", len(fa) - 1)
             else:
-                add(row, "unexplained" if c["verdict"] == "unexplained" else "nothing")
+                add(row, nothing)
             continue
-        for r in c["per_effect"]:
+        used = 0
+        for i, r in enumerate(c["per_effect"]):
             if r["outcome"] == "right":
                 add(r["type"], r["type"])
             elif r["outcome"] == "ambiguous-right":
                 add(r["type"], "ambiguous-right")
             elif r["outcome"] == "not visible":
                 add(r["type"], "not visible")
-            elif r["type"] in fa_types:
-                add(r["type"], "wrong instance")
-            elif fa_types:
-                for t in fa_types:
-                    add(r["type"], t)
+            elif used < len(fa):
+                add(r["type"], "wrong instance" if fa[used][0] == r["type"] else fa[used][0])
+                used += 1
             else:
-                add(r["type"], "unexplained" if c["verdict"] == "unexplained" else "nothing")
+                add(r["type"], nothing)
+        add(c["per_effect"][0]["type"], "more false alarms", len(fa) - used)
     order = [t for t in TYPES] + ["none (control)"] + ["outside: " + o for o in OUTSIDE]
     lines = ["| true \\ named | " + " | ".join(cols) + " |", "| --- |" + " --- |" * len(cols)]
     for r in order:
