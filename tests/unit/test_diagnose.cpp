@@ -40,7 +40,7 @@ const json* find_kind(const json& findings, const std::string& kind) {
 
 }  // namespace
 
-TEST_CASE("diagnose noise: white scatter under a smooth trend is recovered; peak errors take their share",
+TEST_CASE("diagnose noise: white scatter under a smooth trend is recovered, peak errors take their share",
           "[diagnose]") {
   std::mt19937_64 rng(7);
   std::normal_distribution<double> g(0, 1);
@@ -74,7 +74,7 @@ TEST_CASE("diagnose noise: white scatter under a smooth trend is recovered; peak
   CHECK(outliers == 1);
 }
 
-TEST_CASE("diagnose locate: noise is nothing; a step, an oscillation at the tune and a trend are found where they are",
+TEST_CASE("diagnose locate: noise is nothing, a step, an oscillation at the tune and a trend are found where they are",
           "[diagnose]") {
   std::mt19937_64 rng(11);
   std::normal_distribution<double> g(0, 1);
@@ -156,7 +156,7 @@ TEST_CASE("diagnose catalogue: what a problem variable sets is no candidate", "[
   CHECK(count(c, "field-harmonic") == 0);
 }
 
-TEST_CASE("diagnose: a concealed first-harmonic bump is named, sized and refitted; a truth without one gives nothing-missing",
+TEST_CASE("diagnose: a concealed first-harmonic bump is named, sized and refitted, a truth without one gives nothing-missing",
           "[diagnose]") {
   TempDir tmp;
   // The truth: rinit and vchange moved, plus (or not) a 2 G first harmonic at 3.0 m.

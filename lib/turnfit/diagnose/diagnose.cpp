@@ -125,25 +125,29 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
   const size_t N = meas.points.size();
   size_t evaluations = 0;
 
-  // 1. Base fit: localsearch's least squares (its own sigma estimate), no minimax polish.
+  // 1. Base fit. From the machine's values, localsearch's least squares first (its own sigma
+  // estimate, turn continuation: it finds the valley from far); a --start from an earlier fit
+  // is in the valley already. Then the noise from that residual, and the fit again with it.
   LocalSearchSettings fs = s.fit;
   fs.threads = threads;
   fs.minimax = false;
-  // Turn continuation finds the valley from far; a start given from an earlier fit is in it.
-  if (x0 != p.start()) fs.stages = 1;
-  log("base fit of " + std::to_string(p.variables().size()) + " design variables");
-  out.base_fit = local_search(p, x0, fs);
-  evaluations += out.base_fit.evaluations;
-
-  // 2. The noise, from the base fit's residual.
   auto residual = [&](const TurnPatternProblem& q, const std::vector<double>& x, std::vector<unsigned char>& matched) {
     const TurnPatternResult r = q.simulate(x);
     if (!r.ok) throw Error(ExitCode::data, "diagnose: a fitted design cannot be simulated: " + r.reason);
     matched = r.matched;
     return r.delta_mm;
   };
+  std::vector<double> x_start = x0;
+  if (x0 == p.start()) {
+    log("fit of " + std::to_string(p.variables().size()) + " design variables from the machine's values");
+    const LocalSearchResult r = local_search(p, x0, fs);
+    evaluations += r.evaluations;
+    x_start = r.x;
+  }
+
+  // 2. The noise, from that residual.
   std::vector<unsigned char> matched;
-  std::vector<double> e = residual(p, out.base_fit.x, matched);
+  std::vector<double> e = residual(p, x_start, matched);
   ++evaluations;
   out.noise = estimate_noise(meas, e, matched);
   std::vector<double> sigma_fit = out.noise.sigma_mm;
@@ -156,25 +160,24 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
     log(line);
   }
 
-  // The base model refitted with that noise as every turn's sigma (one pass from the fit).
+  // The base fit with that noise as every turn's sigma. Every model from here on holds the
+  // centroid shift of its start: the effects and the variables' small moves change it far
+  // below the noise, and recomputing it costs a track of every quadrature particle per pass.
   State st;
-  // Every model from here on holds the base fit's centroid shift: the effects and the
-  // variables' small moves change it far below the noise, and recomputing it costs a track
-  // of every quadrature particle per pass of every refit.
-  st.prob = p.with_machine(p.machine(), p.variables(), out.base_fit.x, true);
+  if (p.current_centroid_shift().x != x_start) p.update_centroid_shift(x_start, threads);
+  st.prob = p.with_machine(p.machine(), p.variables(), x_start, true);
   st.prob->set_sigma_mm(sigma_fit);
   st.n_problem = p.variables().size();
+  fs.stages = 1;
   LocalSearchSettings rs = fs;
-  rs.stages = 1;
   // Refits start at the linearized joint optimum: a few iterations reach the valley floor, and
   // an unfinished one only understates an effect's gain.
   rs.max_iterations = std::min(rs.max_iterations, 12);
   rs.progress = nullptr;
-  {
-    const LocalSearchResult r = local_search(*st.prob, out.base_fit.x, rs);
-    evaluations += r.evaluations;
-    st.x = r.x;
-  }
+  log("base fit of " + std::to_string(p.variables().size()) + " design variables with that noise");
+  out.base_fit = local_search(*st.prob, x_start, fs);
+  evaluations += out.base_fit.evaluations;
+  st.x = out.base_fit.x;
   out.x_base = st.x;
 
   const TuneTable tunes = radial_tunes(p.machine(), threads);
@@ -356,7 +359,7 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
   for (int round = 1;; ++round) {
     const size_t evaluations_at_round = evaluations;
     const auto t_round = std::chrono::steady_clock::now();
-    if (round > 1) {
+    {
       // The noise again, from the residual the effects found so far leave: missing physics
       // that varies from turn to turn (a betatron oscillation it drives) raised the first
       // estimate. Within a round every score uses one noise; chi2 before and after are
@@ -385,13 +388,15 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
       for (Index r = static_cast<Index>(nd); r < L.z.size(); ++r) train[static_cast<size_t>(f)].push_back(r);
     }
     std::vector<Base> fold_base;
-    double held_base = 0;
+    double held_base = 0, held_mm2 = 0;
     for (int f = 0; f < K; ++f) {
       const auto& tr = train[static_cast<size_t>(f)];
       const auto& te = test[static_cast<size_t>(f)];
       fold_base.push_back(base_of(L.J(tr, Eigen::all), L.z(tr)));
       const VectorXd delta = -fold_base.back().R.triangularView<Eigen::Upper>().solve(fold_base.back().Qtz);
-      held_base += (L.z(te) + L.J(te, Eigen::all) * delta).squaredNorm();
+      const VectorXd pred = L.z(te) + L.J(te, Eigen::all) * delta;
+      held_base += pred.squaredNorm();
+      for (Index q = 0; q < pred.size(); ++q) held_mm2 += std::pow(pred[q] * rows.sigma[rows.point[static_cast<size_t>(te[static_cast<size_t>(q)])]], 2);
     }
     // Effective degrees of freedom: data rows less the trace of the data part of the hat matrix.
     const double hat = base.Q.topRows(static_cast<Index>(nd)).squaredNorm();
@@ -403,7 +408,8 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
         c2 += std::pow(d / rows.sigma[rows.point[r]], 2), ss += d * d, linf = std::max(linf, std::fabs(d));
       }
       out.after = {linf, std::sqrt(ss / static_cast<double>(nd)), c2, c2 / (static_cast<double>(nd) - hat),
-                   static_cast<double>(nd) - hat, held_base / static_cast<double>(nd), nd};
+                   static_cast<double>(nd) - hat, held_base / static_cast<double>(nd), nd,
+                   std::sqrt(held_mm2 / static_cast<double>(nd))};
     }
     if (round == 1) {
       out.before = out.after;
@@ -591,7 +597,7 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
     // 4. Refit the strongest distinct candidates nonlinearly.
     std::vector<const Row*> order;
     for (const auto& row : screened)
-      if (row.sc.dchi2 > 0.5 * threshold(k_of(*row.c))) order.push_back(&row);
+      if (row.sc.dchi2 > 0.6 * threshold(k_of(*row.c))) order.push_back(&row);
     std::sort(order.begin(), order.end(), [&](const Row* a, const Row* b) {
       return a->sc.dchi2 - k_of(*a->c) * logN > b->sc.dchi2 - k_of(*b->c) * logN;
     });

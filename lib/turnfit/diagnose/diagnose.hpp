@@ -122,8 +122,9 @@ struct DiagnoseSettings {
 /// A fit's figures with the diagnosis's noise.
 struct FitFigures {
   double linf_mm = 0, rms_mm = 0, chi2 = 0, chi2_per_dof = 0, dof = 0;
-  double held_out_chi2_per_point = 0;  ///< cross-validated (linearized, interleaved folds)
+  double held_out_chi2_per_point = 0;  ///< cross-validated (linearized, interleaved folds), with that round's noise
   size_t points = 0;
+  double held_out_rms_mm = 0;          ///< the same predictions' errors in mm (independent of the noise estimate)
 };
 
 /// What the diagnosis found (the report's content; the app writes it).

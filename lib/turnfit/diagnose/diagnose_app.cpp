@@ -81,6 +81,7 @@ json figures_json(const FitFigures& f) {
           {"dof", jnum(f.dof)},
           {"chi2_per_dof", jnum(f.chi2_per_dof)},
           {"held_out_chi2_per_point", jnum(f.held_out_chi2_per_point)},
+          {"held_out_rms_mm", jnum(f.held_out_rms_mm)},
           {"points", f.points}};
 }
 
@@ -156,10 +157,10 @@ std::string diagnosis_markdown(const TurnPatternProblem& p, const json& r) {
     md << ": the residual is significant, but no effect of the catalogue explains it. Where it lies is below.";
   md << "\n\n";
 
-  md << "## Fit before and after\n\n| | worst turn [mm] | RMS [mm] | chi2/dof | held-out chi2/point |\n|---|---|---|---|---|\n";
+  md << "## Fit before and after\n\n| | worst turn [mm] | RMS [mm] | chi2/dof | held-out RMS [mm] |\n|---|---|---|---|---|\n";
   for (const char* k : {"before", "after"})
     md << "| " << k << " | " << num(r[k]["linf_mm"]) << " | " << num(r[k]["rms_mm"]) << " | "
-       << num(r[k]["chi2_per_dof"]) << " | " << num(r[k]["held_out_chi2_per_point"]) << " |\n";
+       << num(r[k]["chi2_per_dof"]) << " | " << num(r[k]["held_out_rms_mm"]) << " |\n";
   md << "\nNoise, estimated from the residual's second differences (peak uncertainties added in quadrature):";
   for (auto it = r["noise"]["probes"].begin(); it != r["noise"]["probes"].end(); ++it)
     md << " " << it.key() << " " << num(it.value()["scatter_mm"]) << " mm (peak uncertainties times "
