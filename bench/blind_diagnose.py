@@ -144,8 +144,8 @@ import time
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
-from blind_localsearch import (MACHINE, REPO, PROTON_MEV, ToolError, check_numbering, draw_truth,  # noqa: E402
-                               paper_variables, read_csv, run, turns_of, write_json)
+from blind_localsearch import (MACHINE, REPO, PROTON_MEV, ToolError, check_truth_dvars, draw_truth,  # noqa: E402
+                               measured_peaks, paper_variables, read_csv, run, turns_of, write_json)
 
 R8 = os.path.dirname(MACHINE)
 NOMINAL = json.load(open(MACHINE, encoding="utf-8"))
@@ -515,25 +515,11 @@ def measure(case, args, tools, variables, work):
         run(cmd, "turnfit-synth")
     case["synth_wall_s"] = time.time() - t0
     tdoc = json.load(open(os.path.join(meas, "truth.json"), encoding="utf-8"))
-    for n, v in case["dvars"].items():
-        if abs(tdoc["dvars"][n] - v) > 1e-9 * max(1.0, abs(v)):
-            raise ToolError("%s: truth.json dvars %s = %r, drawn %r" % (case["label"], n, tdoc["dvars"][n], v))
+    check_truth_dvars(case["label"], tdoc, case["dvars"])
     case["drift"] = {k: tdoc["drift"][k] for k in ("dr_mm", "dpr_mrad", "dvoltage_rel")}
     case["lost"] = tdoc.get("lost")
-    rri2, rrl = os.path.join(d, "rri2.csv"), os.path.join(d, "rrl.csv")
-    run([tools["peakfind"], os.path.join(meas, "RRI2.csv"), "-q", "-o", rri2], "turnfit-peakfind RRI2")
-    run([tools["peakfind"], os.path.join(meas, "RRL.csv"), "--first-turn", "9", "-q", "-o", rrl],
-        "turnfit-peakfind RRL")
-    peaks = turns_of(read_csv(rri2) + read_csv(rrl))
-    wrong, missing, pmax, prms = check_numbering(peaks, tdoc["turns"])
-    case["peaks"], case["true_turns"] = len(peaks), sum(len(v) for v in tdoc["turns"].values())
-    case["misnumbered"], case["missing"] = wrong, missing
+    peaks, pmax, prms, peak_files = measured_peaks(tools, meas, d, tdoc, case)
     case["peak_err"] = (pmax, prms)
-    if wrong:
-        case["failures"].append("peakfind misnumbered %d turns (probe, peak's number, true number): %s" % (
-            len(wrong), wrong[:8]))
-    if missing:
-        case["notes"].append("peakfind missed %d true turn(s): %s" % (len(missing), missing[:8]))
     case["raw_signature"] = raw_signature(tools, case, d, dv_path, peaks)
 
     prob = os.path.join(d, "problem.json")
@@ -542,7 +528,7 @@ def measure(case, args, tools, variables, work):
     else:
         sig = prior_sigmas(case, variables)
         var = [{"name": n, "lower": lo, "upper": hi, "sigma": sig[n]} for n, _, lo, hi in variables]
-    write_json(prob, {"format": "turnfit-problem/1", "machine": MACHINE, "peaks": [rri2, rrl], "variables": var})
+    write_json(prob, {"format": "turnfit-problem/1", "machine": MACHINE, "peaks": peak_files, "variables": var})
     case["problem"] = prob
     return case
 

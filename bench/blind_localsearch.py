@@ -247,6 +247,35 @@ def check_numbering(peaks, truth_turns):
     return wrong, missing, max(abs(e) for e in errs) if errs else float("nan"), rms
 
 
+def check_truth_dvars(label, tdoc, drawn):
+    """truth.json's dvars must be the drawn ones (synth applied what it was given)."""
+    for n, v in drawn.items():
+        if abs(tdoc["dvars"][n] - v) > 1e-9 * max(1.0, abs(v)):
+            raise ToolError("%s: truth.json dvars %s = %r, drawn %r" % (label, n, tdoc["dvars"][n], v))
+
+
+def measured_peaks(tools, meas, d, tdoc, row):
+    """turnfit-peakfind on meas's RRI2.csv and RRL.csv (--first-turn 9) into d, every peak matched to
+    truth.json's true turns (check_numbering); fills row's peaks, true_turns, misnumbered, missing
+    and its failures (a misnumbered turn) and notes (a missed turn); returns the peaks, the worst and
+    rms error of the peaks against the true turns, and the two peak files [RRI2, RRL]."""
+    rri2, rrl = os.path.join(d, "rri2.csv"), os.path.join(d, "rrl.csv")
+    run([tools["peakfind"], os.path.join(meas, "RRI2.csv"), "-q", "-o", rri2], "turnfit-peakfind RRI2")
+    run([tools["peakfind"], os.path.join(meas, "RRL.csv"), "--first-turn", "9", "-q", "-o", rrl],
+        "turnfit-peakfind RRL")
+    peaks = turns_of(read_csv(rri2) + read_csv(rrl))
+    wrong, missing, pmax, prms = check_numbering(peaks, tdoc["turns"])
+    row["peaks"] = len(peaks)
+    row["true_turns"] = sum(len(v) for v in tdoc["turns"].values())
+    row["misnumbered"], row["missing"] = wrong, missing
+    if wrong:
+        row["failures"].append("peakfind misnumbered %d turns (probe, peak's number, true number): %s" % (
+            len(wrong), wrong[:8]))
+    if missing:  # a note: a missed turn is one residual less, not a wrong one
+        row["notes"].append("peakfind missed %d true turn(s): %s" % (len(missing), missing[:8]))
+    return peaks, pmax, prms, [rri2, rrl]
+
+
 def track_turns(tools, dvars_path, centroid=False):
     """turnfit-track's turns of the machine with these dvars: the reference particle's, or with
     centroid the bunch's centre as a turn-pattern problem predicts it (turnfit-track --centroid)."""
@@ -297,28 +326,13 @@ def one_truth(label, rng, variables, args, tools, work, control):
     tdoc = json.load(open(os.path.join(meas, "truth.json")))
     row["particles"], row["lost"], row["drift"] = tdoc["particles"], tdoc["lost"], {
         k: tdoc["drift"][k] for k in ("dr_mm", "dpr_mrad", "dvoltage_rel")}
-    for n, v in truth.items():
-        if abs(tdoc["dvars"][n] - v) > 1e-9 * max(1.0, abs(v)):
-            raise ToolError("%s: truth.json dvars %s = %r, drawn %r" % (label, n, tdoc["dvars"][n], v))
+    check_truth_dvars(label, tdoc, truth)
     eff = effective_truth(tdoc)
     eff_path = os.path.join(d, "effective-truth-dvars.json")
     write_json(eff_path, eff)
 
-    rri2, rrl = os.path.join(d, "rri2.csv"), os.path.join(d, "rrl.csv")
-    run([tools["peakfind"], os.path.join(meas, "RRI2.csv"), "-q", "-o", rri2], "turnfit-peakfind RRI2")
-    run([tools["peakfind"], os.path.join(meas, "RRL.csv"), "--first-turn", "9", "-q", "-o", rrl],
-        "turnfit-peakfind RRL")
-    peaks = turns_of(read_csv(rri2) + read_csv(rrl))
-    wrong, missing, pmax, prms = check_numbering(peaks, tdoc["turns"])
-    row["peaks"] = len(peaks)
-    row["true_turns"] = sum(len(v) for v in tdoc["turns"].values())
-    row["misnumbered"], row["missing"] = wrong, missing
+    peaks, pmax, prms, peak_files = measured_peaks(tools, meas, d, tdoc, row)
     row["peak_err_max_mm"], row["peak_err_rms_mm"] = pmax, prms
-    if wrong:
-        row["failures"].append("peakfind misnumbered %d turns (probe, peak's number, true number): %s" % (
-            len(wrong), wrong[:8]))
-    if missing:  # a note: a missed turn is one residual less, not a wrong one
-        row["notes"].append("peakfind missed %d true turn(s): %s" % (len(missing), missing[:8]))
 
     # The truth with and without the drift, the bunch's centre as the fit predicts it, against the
     # peaks: with the drift, the floor a perfect fit reaches (the peaks' own errors and the model's).
@@ -333,7 +347,7 @@ def one_truth(label, rng, variables, args, tools, work, control):
     row["truth_drift_vs_centres"] = norms(eff_turns, centres)[:2]
 
     prob = os.path.join(d, "problem.json")
-    write_json(prob, {"format": "turnfit-problem/1", "machine": MACHINE, "peaks": [rri2, rrl], "variables": "paper"})
+    write_json(prob, {"format": "turnfit-problem/1", "machine": MACHINE, "peaks": peak_files, "variables": "paper"})
     rep, best = os.path.join(d, "report.json"), os.path.join(d, "best.json")
     ru0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.time()
