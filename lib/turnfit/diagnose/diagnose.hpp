@@ -63,8 +63,9 @@ const std::vector<std::string>& catalogue_types();
 /// (robust to single bad peaks): the median of d_i^2 / var_i is that of chi2 with one degree of
 /// freedom, 0.4549. With peak uncertainties, sigma_i^2 = s_p^2 + c_p^2 u_i^2: for each trust c_p
 /// on a grid (0.5-3) s_p from that median condition, and c_p by the likelihood of the second
-/// differences (each capped at 4 sigma); with fewer than 40 differences c_p = 1. A smooth trend (any polynomial of degree 1 over three turns) leaves no
-/// second difference; an oscillation of q cycles per turn is amplified by 4 sin^2(pi q).
+/// differences (each capped at 4 sigma); with fewer than 40 differences c_p = 1. A smooth trend
+/// (any polynomial of degree 1 over three turns) leaves no second difference; an oscillation of
+/// q cycles per turn is amplified by 4 sin^2(pi q).
 struct NoiseEstimate {
   std::vector<std::string> probes;
   std::vector<double> scatter_mm;     ///< s_p per probe
