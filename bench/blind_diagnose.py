@@ -51,9 +51,9 @@ so adding cases, kinds or configurations never changes the cases already drawn.
    Outside the catalogue (OUTSIDE; size ~ U(OUTSIDE_SIZES), set from noiseless fits, see there):
    "profile-bump" multiplies a main cavity's radial voltage profile by
    1 + A exp(-(rho - rho0)^2 / (2 w^2)) (rho0 ~ U(0.25, 0.6): the beam's rho_n runs 0.18-0.63;
-   w ~ U(0.03, 0.08)), written as a new profile file; "transit-time" widens a main cavity's
-   gap_width_mm (the transit-time factor falls with the gap and rises with the speed, so the
-   voltage seen changes with radius); "field-scale" scales the whole field map by 1 + eps (no
+   w ~ U(0.03, 0.08)), written as a new profile file; "transit-time" (no longer drawn, see
+   OUTSIDE) widens a main cavity's gap_width_mm (the transit-time factor falls with the gap and
+   rises with the speed, so the voltage seen changes with radius); "field-scale" scales the whole field map by 1 + eps (no
    design variable scales the main field; the trim coils can take up part of it).
 3. the truth machine: share/turnfit/ring8/machine.json with its map, profile and table paths
    made absolute (as bench/effect_signatures.sh does), the effects in "effects" and the
@@ -152,7 +152,12 @@ NOMINAL = json.load(open(MACHINE, encoding="utf-8"))
 TYPES = ("field-harmonic", "sector-strength", "trimcoil-sectors", "gap-bow", "voltage-tilt")
 KINDS = ("control", "single", "pair", "outside")
 KIND_DECK = ("control", "single", "single", "single", "pair", "outside")
-OUTSIDE = ("profile-bump", "transit-time", "field-scale")
+# transit-time is drawn no more (2026-11-24, third session): the variables take up a gap change so well
+# that leaving 0.015 mm after their fit takes a 600-900 mm wider gap on a 300 mm gap, which is no
+# machine; the report run's case02 (+737 mm) moved turns by 55 mm and peakfind misnumbered 173 of them.
+# draw_outside() still knows it (OUTSIDE_SIZES).
+OUTSIDE = ("profile-bump", "field-scale")
+OUTSIDE_ALL = ("profile-bump", "transit-time", "field-scale")
 SIZE_NAMES = ("visible", "near")
 CAVITIES = ("main1", "main2", "main3", "main4", "ft")
 MAIN_CAVITIES = ("main1", "main2", "main3", "main4")
@@ -834,7 +839,7 @@ def confusion(cases, size):
             else:
                 add(r["type"], nothing)
         add(c["per_effect"][0]["type"], "more false alarms", len(fa) - used)
-    order = [t for t in TYPES] + ["none (control)"] + ["outside: " + o for o in OUTSIDE]
+    order = [t for t in TYPES] + ["none (control)"] + ["outside: " + o for o in OUTSIDE_ALL]
     lines = ["| true \\ named | " + " | ".join(cols) + " |", "| --- |" + " --- |" * len(cols)]
     for r in order:
         if r in rows:

@@ -115,6 +115,9 @@ struct DiagnoseSettings {
   double ambiguity = 6;             ///< Delta BIC within which a competitor is ambiguous (Kass and Raftery: "strong" evidence)
   int max_effects = 4;
   int refits = 3;                   ///< nonlinear refits of the strongest distinct candidates per round
+  /// Round 1: a refitted candidate whose signature the variables take up all but this fraction
+  /// of (the screen's visible fraction) is fitted a second time from the machine's values.
+  double from_start_visible = 0.1;
   int folds = 5;                    ///< interleaved held-out folds
   bool verbose = false;
   std::function<void(const std::string&)> log;  ///< progress lines (may be empty)
@@ -140,6 +143,7 @@ struct Diagnosis {
   nlohmann::json candidates = nlohmann::json::array();  ///< every candidate tried, with its scores
   nlohmann::json not_candidates = nlohmann::json::array();
   nlohmann::json rounds = nlohmann::json::array();      ///< greedy rounds: refits and choice
+  nlohmann::json eliminations = nlohmann::json::array(); ///< backward elimination: each effect taken out, its chi2 loss
   nlohmann::json variables_after = nlohmann::json::array();  ///< design variables of the final fit
   FitFigures before, after;
   LocalSearchResult base_fit;          ///< the base fit of the design variables
