@@ -822,6 +822,8 @@ def confusion(cases, size):
             elif fa:
                 add(row, fa[0][0])
                 add(row, "more false alarms", len(fa) - 1)
+            elif c["named_types"]:  # named something, not a false alarm, and still wrong (e.g. its
+                add(row, c["named_types"][0])  # approximation leaves the data unexplained)
             else:
                 add(row, nothing)
             continue

@@ -115,8 +115,11 @@ struct DiagnoseSettings {
   double ambiguity = 6;             ///< Delta BIC within which a competitor is ambiguous (Kass and Raftery: "strong" evidence)
   int max_effects = 4;
   int refits = 3;                   ///< nonlinear refits of the strongest distinct candidates per round
-  /// Round 1: a refitted candidate whose signature the variables take up all but this fraction
-  /// of (the screen's visible fraction) is fitted a second time from the machine's values.
+  /// Round 1: a refitted candidate whose refit from the base fit gains less than
+  /// `from_start_shortfall` times its linearized screen's gain, and whose signature the
+  /// variables take up all but `from_start_visible` of, is fitted a second time from the
+  /// machine's values (0: never).
+  double from_start_shortfall = 0.9;
   double from_start_visible = 0.1;
   int folds = 5;                    ///< interleaved held-out folds
   bool verbose = false;

@@ -46,10 +46,10 @@ void add_diagnose_options(CLI::App& app, DiagnoseOptions& o) {
       ->check(CLI::Range(1, 20));
   app.add_option("--refits", o.settings.refits, "Candidates refitted nonlinearly per round (default 3)")
       ->check(CLI::Range(1, 50));
-  app.add_option("--from-start", o.settings.from_start_visible,
-                 "Round 1: refit a candidate a second time from the machine's values when the variables take up "
-                 "all but this fraction of its signature (default 0.1; 0: never)")
-      ->check(CLI::Range(0.0, 1.0));
+  app.add_option("--from-start", o.settings.from_start_shortfall,
+                 "Round 1: fit a candidate again from the machine's values when its refit from the fit gains less "
+                 "than this fraction of its linear screen (default 0.9; 0: never)")
+      ->check(CLI::Range(0.0, 10.0));
   app.add_option("--folds", o.settings.folds, "Interleaved held-out folds (default 5)")->check(CLI::Range(2, 50));
   cli::add_common_options(app, o.common, cli::kOutput | cli::kThreads);
 }
