@@ -79,6 +79,10 @@ def main():
                 print("  round %d: screen %d designs %.1f s; refits %s" % (
                     rd["round"], rd["screen_evaluations"], rd["screen_wall_s"],
                     ", ".join("%d designs %.1f s" % (x.get("evaluations", 0), x.get("wall_s", 0)) for x in rd["refits"])))
+            if r.get("eliminations"):
+                print("  backward elimination: %s" % ", ".join(
+                    "%d designs%s" % (x["evaluations"], " (taken out)" if x.get("dropped") else "")
+                    for x in r["eliminations"]))
             print("  goal: under 300 s on 2 cores: %s" % ("met" if wall < 300 else "NOT met"))
     finally:
         if not a.work:

@@ -205,6 +205,14 @@ std::string diagnosis_markdown(const TurnPatternProblem& p, const json& r) {
     }
     md << "\n";
   }
+  if (r.contains("eliminations") && !r["eliminations"].empty()) {
+    md << "## Each effect taken out again\n\nThe others refitted without it; it stays when the chi2 they lose "
+          "earns its parameters:\n\n";
+    for (const auto& e : r["eliminations"])
+      md << "- " << e["label"].get<std::string>() << ": chi2 up by " << num(e["delta_chi2"], 4) << " (must earn "
+         << num(e["threshold"], 3) << ")" << (e["dropped"].get<bool>() ? ": taken out" : "") << "\n";
+    md << "\n";
+  }
   md << "## Where the residual lies (after the base fit)\n\n";
   size_t shown_n = 0;
   for (const auto& f : r["located"]) {
