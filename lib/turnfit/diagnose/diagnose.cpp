@@ -818,25 +818,25 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
         for (size_t q = xs.size(); q < x.size(); ++q) xs.push_back(nv[q].start);
         LocalSearchSettings ws = fs;
         ws.progress = nullptr;
-        State alt;
-        alt.prob = rf.state.prob->with_machine(rf.state.prob->machine(), nv, shift_x, true);
-        alt.prob->set_sigma_mm(sigma_fit);
-        alt.n_problem = st.n_problem;
+        const std::vector<double> x_last = rf.state.x;
         try {
-          LocalSearchResult r2 = local_search(*alt.prob, xs, ws);
+          // The same problem (machine, variables, sigma) as the refit's, from another start.
+          LocalSearchResult r2 = local_search(*rf.state.prob, xs, ws);
           evaluations += r2.evaluations;
-          alt.x = r2.x;
-          const double c2b = chi2_of(alt, nullptr, nullptr);
+          rf.state.x = r2.x;
+          const double c2b = chi2_of(rf.state, nullptr, nullptr);
           log("  refit " + c.label + " from the machine's values: chi2 " + cli::fmt(c2b, 6) + " against " +
               cli::fmt(c2, 6) + " from the base fit (" + std::to_string(r2.evaluations) + " designs)");
           cand_report[c.label]["refit_from_start"] = {{"delta_chi2", chi2_now - c2b}, {"evaluations", r2.evaluations}};
           if (c2b < c2) {
             c2 = c2b;
             rf.r = std::move(r2);
-            rf.state.x = alt.x;
             start_kind = "machine's values";
+          } else {
+            rf.state.x = x_last;
           }
         } catch (const Error& err) {
+          rf.state.x = x_last;
           log("  refit " + c.label + " from the machine's values failed: " + std::string(err.what()));
         }
       }
@@ -973,8 +973,7 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
         x.push_back(st.x[q]);
       }
       State red;
-      red.prob = st.prob->with_machine(std::move(v), nv, x, true);
-      red.prob->set_sigma_mm(sigma_fit);
+      red.prob = st.prob->with_machine(std::move(v), nv, x, true);  // keeps st's sigma
       red.n_problem = st.n_problem;
       LocalSearchResult r;
       try {
