@@ -72,7 +72,11 @@ so adding cases, kinds or configurations never changes the cases already drawn.
    0.64 of that, and the prior keeps the default: wider than the truth's spread, never
    narrower), and for the coils of a trimcoil-sectors group the rms of their draw, 1.04 B.
    A prior narrower than the truth's spread would be a false prior and turn design errors
-   into "effects".
+   into "effects". At --noise paper the problem also gives the probe drive's correlated error,
+   "scan_noise": {"drive_mm": 0.315, "corr_mm": 10}: what repeated scans tell an experimenter
+   (the per-turn peak scatter of one run that synth's paper preset is calibrated to; its drive
+   error itself is 0.36 mm over 10 mm); --scan-noise-given scales the drive given, to test a
+   wrong one, and 0 leaves it out as earlier sessions did.
 5. turnfit-diagnose PROBLEM -o report.json --markdown report.md --threads T -q; then scoring.
 
 Scoring (per true effect, then per case):
@@ -156,6 +160,13 @@ KIND_DECK = ("control", "single", "single", "single", "pair", "outside")
 # that leaving 0.015 mm after their fit takes a 600-900 mm wider gap on a 300 mm gap, which is no
 # machine; the report run's case02 (+737 mm) moved turns by 55 mm and peakfind misnumbered 173 of them.
 # draw_outside() still knows it (OUTSIDE_SIZES).
+# What a paper-noise problem gives as its scan_noise: the per-turn peak scatter of one run that
+# repeated scans show, 0.315 mm (the paper preset's calibration target, bench/RESULTS.md "The
+# split"; synth's drive error is 0.36 mm, of which a peak follows about 0.83: on tuning seed
+# 1001 the peaks' errors against the true centres had covariance 0.34^2 exp(-|dr| / 11.5 mm)),
+# correlated over the drive's 10 mm.
+PAPER_DRIVE_MM = 0.315
+PAPER_DRIVE_CORR_MM = 10.0
 OUTSIDE = ("profile-bump", "field-scale")
 OUTSIDE_ALL = ("profile-bump", "transit-time", "field-scale")
 SIZE_NAMES = ("visible", "near")
@@ -533,7 +544,10 @@ def measure(case, args, tools, variables, work):
     else:
         sig = prior_sigmas(case, variables)
         var = [{"name": n, "lower": lo, "upper": hi, "sigma": sig[n]} for n, _, lo, hi in variables]
-    write_json(prob, {"format": "turnfit-problem/1", "machine": MACHINE, "peaks": peak_files, "variables": var})
+    doc = {"format": "turnfit-problem/1", "machine": MACHINE, "peaks": peak_files, "variables": var}
+    if case["noise"] == "paper" and args.scan_noise_given > 0:
+        doc["scan_noise"] = {"drive_mm": PAPER_DRIVE_MM * args.scan_noise_given, "corr_mm": PAPER_DRIVE_CORR_MM}
+    write_json(prob, doc)
     case["problem"] = prob
     return case
 
@@ -947,6 +961,9 @@ def main(argv):
     ap.add_argument("--markdown-out", help="write the tables as markdown (for bench/RESULTS.md)")
     ap.add_argument("--min-right", type=float, default=0.9, help="fraction of visible cases named right (0.9)")
     ap.add_argument("--dry-run", action="store_true", help="stop before turnfit-diagnose")
+    ap.add_argument("--scan-noise-given", type=float, default=1.0,
+                    help="at paper noise: the drive error the problem gives, as a factor of synth's (0.36 mm over "
+                         "10 mm); 0: none")
     ap.add_argument("--reuse", action="store_true",
                     help="with --work: keep a case's synth and diagnose outputs when its draw (case.json) is unchanged")
     try:

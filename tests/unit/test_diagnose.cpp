@@ -119,6 +119,105 @@ TEST_CASE("diagnose locate: noise is nothing, a step, an oscillation at the tune
   CHECK((*tr)["peak_turn"].get<double>() == Approx(121).margin(6));
 }
 
+namespace {
+
+/// A drive error along the probe: an Ornstein-Uhlenbeck process of rms d and correlation
+/// length l at the turns' radii (exact AR(1) steps), plus white noise of rms w.
+std::vector<double> drive_noise(const TurnTable& t, double d, double l, double w, std::mt19937_64& rng) {
+  std::normal_distribution<double> g(0, 1);
+  std::vector<double> e(t.points.size());
+  double x = d * g(rng);
+  for (size_t i = 0; i < e.size(); ++i) {
+    if (i > 0) {
+      const double rho = std::exp(-(t.points[i].r_mm - t.points[i - 1].r_mm) / l);
+      x = rho * x + d * std::sqrt(1 - rho * rho) * g(rng);
+    }
+    e[i] = x + w * g(rng);
+  }
+  return e;
+}
+
+}  // namespace
+
+TEST_CASE("scan noise: the whitener makes drive-correlated residuals white and unit, and is e / sigma without it",
+          "[diagnose][scan-noise]") {
+  std::mt19937_64 rng(23);
+  const int n = 150;
+  const TurnTable t = one_probe(n, 0);
+  std::vector<size_t> pts(n);
+  for (size_t i = 0; i < pts.size(); ++i) pts[i] = i;
+  const std::vector<double> sigma(n, 0.05);
+  ScanNoise sn;
+  sn.drive_mm = 0.3;
+  sn.corr_mm = 20;  // turns 10 mm apart: neighbours correlated by 0.61
+  const Whitener w(t, pts, sigma, sn);
+  double z2 = 0, lag1 = 0, raw_lag1 = 0, raw2 = 0;
+  const int runs = 200;
+  for (int k = 0; k < runs; ++k) {
+    const std::vector<double> e = drive_noise(t, 0.3, 20, 0.05, rng);
+    const Eigen::VectorXd z = w.whitened(e, pts);
+    z2 += z.squaredNorm();
+    for (int i = 1; i < n; ++i) {
+      lag1 += z[i] * z[i - 1];
+      raw_lag1 += e[static_cast<size_t>(i)] * e[static_cast<size_t>(i - 1)];
+      raw2 += e[static_cast<size_t>(i)] * e[static_cast<size_t>(i)];
+    }
+    // color() undoes whiten().
+    Eigen::VectorXd back = z;
+    w.color(back);
+    CHECK(back[77] == Approx(e[77]).margin(1e-9));
+  }
+  const double per_point = z2 / (runs * n), corr1 = lag1 / z2, raw_corr1 = raw_lag1 / raw2;
+  CHECK(raw_corr1 > 0.5);                     // the test noise is correlated ...
+  CHECK(per_point == Approx(1).margin(0.03));  // ... whitened: unit variance
+  CHECK(std::fabs(corr1) < 0.03);              // and no correlation left
+  // Without a drive error: e / sigma exactly.
+  const Whitener d(t, pts, sigma, ScanNoise{});
+  CHECK(d.diagonal());
+  std::vector<double> e(n, 0.1);
+  CHECK(d.whitened(e, pts)[5] == 0.1 / 0.05);
+}
+
+TEST_CASE("diagnose noise and locate with the drive error given: its scatter is not noise's, a control stays quiet",
+          "[diagnose][scan-noise]") {
+  std::mt19937_64 rng(31);
+  const int n = 170;
+  const TurnTable t = one_probe(n, 0);
+  std::vector<unsigned char> m(n, 1);
+  TuneTable tunes;
+  tunes.r_mm = {1000, 5000};
+  tunes.nu_r = {1.18, 1.18};
+  ScanNoise sn;
+  sn.drive_mm = 0.3;
+  sn.corr_mm = 20;
+  int loud_plain = 0, loud_scan = 0;
+  double scatter = 0;
+  const int runs = 12;
+  for (int k = 0; k < runs; ++k) {
+    const std::vector<double> e = drive_noise(t, 0.3, 20, 0.05, rng);
+    const NoiseEstimate with = estimate_noise(t, e, m, sn);
+    scatter += with.scatter_mm[0] / runs;
+    loud_scan += locate(t, e, m, with, tunes, n, 10).significant;
+    loud_plain += locate(t, e, m, estimate_noise(t, e, m), tunes, n, 10).significant;
+  }
+  // The white part beside the drive error is found (0.05 mm); the drive's second differences
+  // are not taken for it.
+  CHECK(scatter == Approx(0.05).epsilon(0.3));
+  // Treated as independent, drive noise looks like structure; with its covariance it does not.
+  CHECK(loud_plain >= runs / 2);
+  CHECK(loud_scan <= 1);
+  // A real step is still found with the drive error given, when it stands out of the jumps the
+  // drive makes between neighbours (rms 0.3 sqrt(2 (1 - 0.61)) = 0.26 mm): 1.5 mm is 6 of them
+  // (0.6 mm, 2.3 of them, is not found, and should not be).
+  std::vector<double> e = drive_noise(t, 0.3, 20, 0.05, rng);
+  for (int k = 100; k < n; ++k) e[static_cast<size_t>(k)] += 1.5;
+  const Located l = locate(t, e, m, estimate_noise(t, e, m, sn), tunes, n, 10);
+  const json* st = find_kind(l.findings, "step");
+  REQUIRE(st);
+  CHECK((*st)["significant"].get<bool>());
+  CHECK((*st)["turns"][1].get<double>() == Approx(101).margin(2));
+}
+
 TEST_CASE("diagnose catalogue: what a problem variable sets is no candidate", "[diagnose]") {
   TempDir tmp;
   std::vector<double> xt;

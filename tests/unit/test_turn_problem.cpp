@@ -186,6 +186,25 @@ TEST_CASE("turn-pattern problem: bad files are named with their key", "[turn-pro
   CHECK(code_and_message(problem_text(tmp.path + "/none.csv", "[\"rinit\"]"), &msg) == 66);
   CHECK(code_and_message(problem_text(peaks, "[\"rinit\"]", ", \"constraints\": [\"energy\"]"), &msg) == 65);
   CHECK(msg.find("constraints/0") != std::string::npos);
+  CHECK(code_and_message(problem_text(peaks, "[\"rinit\"]", ", \"scan_noise\": {\"drive_mm\": -0.1}"), &msg) == 65);
+  CHECK(msg.find("scan_noise/drive_mm") != std::string::npos);
+  CHECK(code_and_message(problem_text(peaks, "[\"rinit\"]", ", \"scan_noise\": {\"drive_mm\": 0.3, \"corr\": 5}"), &msg) == 65);
+  CHECK(msg.find("scan_noise/corr") != std::string::npos);
+  CHECK(code_and_message(problem_text(peaks, "[\"rinit\"]", ", \"scan_noise\": {\"drive_mm\": 0.3, \"corr_mm\": 0}"), &msg) == 65);
+  CHECK(msg.find("scan_noise/corr_mm") != std::string::npos);
+  // A fit cannot estimate the independent sigma beside a correlated drive error: it says so.
+  {
+    const std::string f = tmp.file("sn.json", problem_text(peaks, "[\"rinit\"]", ", \"scan_noise\": {\"drive_mm\": 0.3}"));
+    auto lp = load_problem(f, "", -1);
+    auto* tp = dynamic_cast<TurnPatternProblem*>(lp.problem.get());
+    REQUIRE(tp);
+    CHECK(tp->scan_noise().drive_mm == 0.3);
+    CHECK(tp->scan_noise().corr_mm == 10);
+    LocalSearchSettings ls;
+    ls.max_iterations = 1;
+    CHECK(test::error_code([&] { local_search(*tp, tp->start(), ls); }, &msg) == 65);
+    CHECK(msg.find("scan_noise needs sigma_mm") != std::string::npos);
+  }
 }
 
 TEST_CASE("turn-pattern problem under NSGA-II: the same front on 1 and 2 threads", "[turn-problem]") {

@@ -54,6 +54,7 @@ struct Rows {
   std::vector<size_t> point;   ///< measured point of each data row
   std::vector<int> fold;       ///< its held-out fold
   std::vector<double> sigma;   ///< per measured point
+  Whitener white;              ///< over the data rows (sigma and the problem's scan noise)
 };
 
 /// The linearized model at a state: z (data rows in sigma, then one prior row per variable)
@@ -62,6 +63,8 @@ struct Linear {
   VectorXd z;
   MatrixXd J;
   size_t data = 0;
+  VectorXd e_mm;   ///< the data rows' residuals [mm]
+  MatrixXd J_mm;   ///< their Jacobian [mm per unit]
 };
 
 double clamp(double v, double lo, double hi) { return std::max(lo, std::min(hi, v)); }
@@ -139,9 +142,20 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
     return r.delta_mm;
   };
   std::vector<double> x_start = x0;
+  const ScanNoise scan = p.scan_noise();
   if (x0 == p.start()) {
     log("fit of " + std::to_string(p.variables().size()) + " design variables from the machine's values");
-    const LocalSearchResult r = local_search(p, x0, fs);
+    // This fit only finds the valley; without a sigma it estimates one, which it cannot do
+    // beside a correlated drive error (localsearch refuses): the turns as independent here.
+    if (p.sigma_mm().empty()) p.set_scan_noise(ScanNoise{});
+    LocalSearchResult r;
+    try {
+      r = local_search(p, x0, fs);
+    } catch (...) {
+      p.set_scan_noise(scan);
+      throw;
+    }
+    p.set_scan_noise(scan);
     evaluations += r.evaluations;
     x_start = r.x;
   }
@@ -150,7 +164,7 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
   std::vector<unsigned char> matched;
   std::vector<double> e = residual(p, x_start, matched);
   ++evaluations;
-  out.noise = estimate_noise(meas, e, matched);
+  out.noise = estimate_noise(meas, e, matched, scan);
   std::vector<double> sigma_fit = out.noise.sigma_mm;
   for (size_t i = 0; i < N; ++i)
     if (out.noise.outlier[i]) sigma_fit[i] *= 1e3;  // left out of every fit that follows
@@ -158,6 +172,8 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
     std::string line = "noise from the residual's second differences:";
     for (size_t k = 0; k < out.noise.probes.size(); ++k)
       line += " " + out.noise.probes[k] + " " + cli::fmt(out.noise.scatter_mm[k], 3) + " mm";
+    if (scan.active())
+      line += "; beside the drive error " + cli::fmt(scan.drive_mm, 3) + " mm correlated over " + cli::fmt(scan.corr_mm, 3) + " mm";
     log(line);
   }
 
@@ -212,6 +228,14 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
           rows.fold.push_back(k++ % std::max(2, s.folds));
         }
     }
+    rows.white = Whitener(meas, rows.point, rows.sigma, scan);
+  };
+  // chi2 of a residual over the points flagged, with the turns' covariance (lost turns: `lost`).
+  auto chi2_over = [&](const std::vector<double>& ev, const std::vector<unsigned char>& use) {
+    std::vector<size_t> pts;
+    for (size_t i = 0; i < N; ++i)
+      if (use[i]) pts.push_back(i);
+    return Whitener(meas, pts, rows.sigma, scan).whitened(ev, pts).squaredNorm();
   };
 
   // A residual on the used rows (and the outliers, shown but not fitted); NaN elsewhere.
@@ -244,7 +268,10 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
     L.data = nd;
     L.z.resize(static_cast<Index>(nd + n));
     L.J.setZero(static_cast<Index>(nd + n), static_cast<Index>(n));
-    for (size_t r = 0; r < nd; ++r) L.z[static_cast<Index>(r)] = e_out[rows.point[r]] / rows.sigma[rows.point[r]];
+    L.e_mm.resize(static_cast<Index>(nd));
+    for (size_t r = 0; r < nd; ++r) L.e_mm[static_cast<Index>(r)] = e_out[rows.point[r]];
+    L.z.head(static_cast<Index>(nd)) = L.e_mm;
+    rows.white.whiten(L.z.head(static_cast<Index>(nd)));
     std::vector<std::vector<double>> cols(n);
     parallel_for(n, threads, [&](size_t j, unsigned) {
       std::vector<double> x = S.x;
@@ -256,12 +283,16 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
       cols[j].resize(nd);
       for (size_t r = 0; r < nd; ++r) {
         const size_t i = rows.point[r];
-        cols[j][r] = mj[i] ? (ej[i] - e_out[i]) / h / rows.sigma[i] : 0;
+        cols[j][r] = mj[i] ? (ej[i] - e_out[i]) / h : 0;
       }
     });
     evaluations += n;
+    L.J_mm.resize(static_cast<Index>(nd), static_cast<Index>(n));
+    for (size_t j = 0; j < n; ++j)
+      for (size_t r = 0; r < nd; ++r) L.J_mm(static_cast<Index>(r), static_cast<Index>(j)) = cols[j][r];
+    L.J.topRows(static_cast<Index>(nd)) = L.J_mm;
+    rows.white.whiten_columns(L.J.topRows(static_cast<Index>(nd)));
     for (size_t j = 0; j < n; ++j) {
-      for (size_t r = 0; r < nd; ++r) L.J(static_cast<Index>(r), static_cast<Index>(j)) = cols[j][r];
       const auto& v = vars[j];
       const double sig = v.sigma > 0 ? v.sigma : s.fit.weak_prior_range * (v.upper - v.lower);
       L.J(static_cast<Index>(nd + j), static_cast<Index>(j)) = 1 / sig;
@@ -276,8 +307,18 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
     const std::vector<double> ev = residual(*S.prob, S.x, m);
     ++evaluations;
     double c = 0;
-    for (size_t i = 0; i < N; ++i)
-      if (!out.noise.outlier[i]) c += m[i] ? std::pow(ev[i] / rows.sigma[i], 2) : 100;  // a lost turn: 10 sigma
+    if (scan.active()) {
+      std::vector<double> e10 = ev;
+      std::vector<unsigned char> use(N, 0);
+      for (size_t i = 0; i < N; ++i) {
+        use[i] = !out.noise.outlier[i];
+        if (!m[i]) e10[i] = 10 * rows.sigma[i];  // a lost turn: 10 sigma
+      }
+      c = chi2_over(e10, use);
+    } else {
+      for (size_t i = 0; i < N; ++i)
+        if (!out.noise.outlier[i]) c += m[i] ? std::pow(ev[i] / rows.sigma[i], 2) : 100;  // a lost turn: 10 sigma
+    }
     const auto& vars = S.prob->variables();
     for (size_t j = 0; j < vars.size(); ++j)
       if (vars[j].sigma > 0) c += std::pow((S.x[j] - vars[j].start) / vars[j].sigma, 2);
@@ -300,8 +341,9 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
       std::vector<double> col(nd);
       for (size_t r = 0; r < nd; ++r) {
         const size_t i = rows.point[r];
-        col[r] = m[i] ? (ev[i] - e0[i]) / h / rows.sigma[i] : 0;
+        col[r] = m[i] ? (ev[i] - e0[i]) / h : 0;
       }
+      rows.white.whiten(Eigen::Map<VectorXd>(col.data(), static_cast<Index>(nd)));
       return col;
     };
     if (c.discrete) {
@@ -439,14 +481,15 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
       const VectorXd delta = -fold_base.back().R.triangularView<Eigen::Upper>().solve(fold_base.back().Qtz);
       const VectorXd pred = L.z(te) + L.J(te, Eigen::all) * delta;
       held_base += pred.squaredNorm();
-      for (Index q = 0; q < pred.size(); ++q) held_mm2 += std::pow(pred[q] * rows.sigma[rows.point[static_cast<size_t>(te[static_cast<size_t>(q)])]], 2);
+      held_mm2 += (L.e_mm(te) + L.J_mm(te, Eigen::all) * delta).squaredNorm();
     }
     // Effective degrees of freedom: data rows less the trace of the data part of the hat matrix.
     const double hat = base.Q.topRows(static_cast<Index>(nd)).squaredNorm();
-    double c2 = 0, ss = 0, linf = 0;
+    double c2 = scan.active() ? L.z.head(static_cast<Index>(nd)).squaredNorm() : 0, ss = 0, linf = 0;
     for (size_t r = 0; r < nd; ++r) {
       const double d = e_state[rows.point[r]];
-      c2 += std::pow(d / rows.sigma[rows.point[r]], 2), ss += d * d, linf = std::max(linf, std::fabs(d));
+      if (!scan.active()) c2 += std::pow(d / rows.sigma[rows.point[r]], 2);
+      ss += d * d, linf = std::max(linf, std::fabs(d));
     }
     out.after = {linf, std::sqrt(ss / static_cast<double>(nd)), c2, c2 / (static_cast<double>(nd) - hat),
                  static_cast<double>(nd) - hat, held_base / static_cast<double>(nd), nd,
@@ -470,7 +513,7 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
         std::vector<unsigned char> m;
         const std::vector<double> ev = residual(*st.prob, st.x, m);
         ++evaluations;
-        NoiseEstimate ne = estimate_noise(meas, ev, m);
+        NoiseEstimate ne = estimate_noise(meas, ev, m, scan);
         for (size_t i = 0; i < N; ++i) ne.outlier[i] = ne.outlier[i] || out.noise.outlier[i];
         double moved = 0;
         for (size_t i = 0; i < N; ++i)
@@ -931,8 +974,11 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
     sel.signature_mm.assign(N, std::nan(""));
     {
       const MatrixXd PC = best->row->C - base.Q * (base.Q.transpose() * best->row->C);
-      const VectorXd sgn = -(PC * best->row->sc.c);
-      for (size_t rr = 0; rr < nd; ++rr) sel.signature_mm[rows.point[rr]] = sgn[static_cast<Index>(rr)] * rows.sigma[rows.point[rr]];
+      const VectorXd full = -(PC * best->row->sc.c);
+      VectorXd sgn = full.head(static_cast<Index>(nd));
+      if (scan.active()) rows.white.color(sgn);
+      for (size_t rr = 0; rr < nd; ++rr)
+        sel.signature_mm[rows.point[rr]] = scan.active() ? sgn[static_cast<Index>(rr)] : sgn[static_cast<Index>(rr)] * rows.sigma[rows.point[rr]];
     }
     sel.screen = eff;
     selected.push_back(std::move(sel));
@@ -1031,9 +1077,14 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
   {
     double c2 = 0;
     size_t n_used = 0;
+    std::vector<unsigned char> use(N, 0);
     for (size_t i = 0; i < N; ++i)
-      if (!std::isnan(out.residual_before_mm[i]) && !out.noise.outlier[i])
-        c2 += std::pow(out.residual_before_mm[i] / rows.sigma[i], 2), ++n_used;
+      if (!std::isnan(out.residual_before_mm[i]) && !out.noise.outlier[i]) {
+        use[i] = 1;
+        if (!scan.active()) c2 += std::pow(out.residual_before_mm[i] / rows.sigma[i], 2);
+        ++n_used;
+      }
+    if (scan.active()) c2 = chi2_over(out.residual_before_mm, use);
     out.before_first_noise_chi2 = out.before.chi2;
     out.before.chi2 = c2;
     out.before.chi2_per_dof = c2 / out.before.dof;

@@ -66,6 +66,11 @@ const std::vector<std::string>& catalogue_types();
 /// differences (each capped at 4 sigma); with fewer than 40 differences c_p = 1. A smooth trend
 /// (any polynomial of degree 1 over three turns) leaves no second difference; an oscillation of
 /// q cycles per turn is amplified by 4 sin^2(pi q).
+/// With the probe drive's correlated error (`scan`, the problem's scan_noise), each second
+/// difference's variance gains drive^2 (6 - 4 rho_01 - 4 rho_12 + 2 rho_02), rho_ab =
+/// exp(-|r_a - r_b| / corr) of the three turns' radii, and s_p is the independent part beside it
+/// (the drive error itself is given, not estimated: one scan cannot tell a slow drive error
+/// from a smooth effect). The outlier test then counts the drive error in the turn's sigma.
 struct NoiseEstimate {
   std::vector<std::string> probes;
   std::vector<double> scatter_mm;     ///< s_p per probe
@@ -73,9 +78,11 @@ struct NoiseEstimate {
   std::vector<size_t> differences;    ///< second differences it rests on
   std::vector<double> sigma_mm;       ///< per measured point: sqrt(s_p^2 + c_p^2 u_i^2)
   std::vector<unsigned char> outlier; ///< per point: single outliers (beyond 5 sigma of the running median of 5)
+  ScanNoise scan;                     ///< the correlated drive error beside sigma_mm (inactive: none)
 };
 NoiseEstimate estimate_noise(const TurnTable& measured, const std::vector<double>& residual_mm,
-                             const std::vector<unsigned char>& matched, double floor_mm = 1e-4);
+                             const std::vector<unsigned char>& matched, const ScanNoise& scan = ScanNoise{},
+                             double floor_mm = 1e-4);
 
 /// Radial tune against the radius of the closed orbit (its mean radius), for the oscillation
 /// search: closed orbits of the machine's field at energies over its radius range.

@@ -50,6 +50,10 @@ void add_diagnose_options(CLI::App& app, DiagnoseOptions& o) {
                  "Round 1: fit a candidate again from the machine's values when its refit from the fit gains less "
                  "than this fraction of its linear screen (default 0.9; 0: never)")
       ->check(CLI::Range(0.0, 10.0));
+  app.add_option("--scan-noise", o.scan_noise,
+                 "The probe drive's correlated error, rms and correlation length along the wire's travel: "
+                 "DRIVE_MM or DRIVE_MM,CORR_MM (default corr 10 mm; overrides the problem's scan_noise; 0: the "
+                 "turns independent)");
   app.add_option("--folds", o.settings.folds, "Interleaved held-out folds (default 5)")->check(CLI::Range(2, 50));
   cli::add_common_options(app, o.common, cli::kOutput | cli::kThreads);
 }
@@ -125,6 +129,11 @@ json diagnosis_report(const TurnPatternProblem& p, const Diagnosis& d, const std
   for (unsigned char o : d.noise.outlier) outliers += o != 0;
   j["noise"] = {{"probes", noise}, {"outliers", outliers}, {"scatter_by_round_mm", d.noise_rounds},
                 {"before_chi2_first_noise", d.before_first_noise_chi2}};
+  if (d.noise.scan.active())
+    j["noise"]["scan_noise"] = {{"drive_mm", d.noise.scan.drive_mm},
+                                {"corr_mm", d.noise.scan.corr_mm},
+                                {"source", "given (the problem's scan_noise or --scan-noise): each probe's turns "
+                                           "share drive_mm^2 exp(-|dr| / corr_mm) beside sigma^2"}};
   // The base fit: localsearch's least squares with its own sigma, then refitted with the noise.
   json base = {{"evaluations", d.base_fit.evaluations},
                {"wall_s", d.base_fit.wall_s},
@@ -402,6 +411,7 @@ int run_diagnose(const DiagnoseOptions& o) {
   if (!p)
     throw usage_error(shown(o.problem) + " is not a turn-pattern problem (it names no machine): turnfit-diagnose "
                                          "diagnoses a machine against measured turns");
+  if (!o.scan_noise.empty()) p->set_scan_noise(scan_noise_from_text(o.scan_noise, "--scan-noise"));
   const std::vector<double> x0 = read_start(*p, o.start, o.pick);
   {
     const TurnPatternResult r0 = p->simulate(x0);

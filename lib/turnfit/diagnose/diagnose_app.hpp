@@ -21,6 +21,7 @@ struct DiagnoseOptions {
   std::string markdown;       ///< --markdown: report for people
   std::string machine_out;    ///< --machine-out: the machine with the effects and the fitted variables
   std::string figures;        ///< --figures: folder for the figures
+  std::string scan_noise;     ///< --scan-noise DRIVE_MM[,CORR_MM]: the probe drive's correlated error (overrides the problem's)
   DiagnoseSettings settings;
 };
 

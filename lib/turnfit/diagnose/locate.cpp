@@ -34,8 +34,9 @@ constexpr double kChi2Median1 = 0.454936423119573;
 }  // namespace
 
 NoiseEstimate estimate_noise(const TurnTable& measured, const std::vector<double>& e,
-                             const std::vector<unsigned char>& matched, double floor_mm) {
+                             const std::vector<unsigned char>& matched, const ScanNoise& scan, double floor_mm) {
   NoiseEstimate out;
+  out.scan = scan;
   out.probes = measured.probes;
   const size_t n = measured.points.size();
   out.sigma_mm.assign(n, 0);
@@ -58,11 +59,16 @@ NoiseEstimate estimate_noise(const TurnTable& measured, const std::vector<double
       }
       used = triples.size();
       if (triples.size() < 3) return std::nan("");
-      std::vector<double> d2(triples.size()), uu(triples.size());
+      std::vector<double> d2(triples.size()), uu(triples.size()), dd(triples.size(), 0.0);
       bool any_u = false;
       for (size_t k = 0; k < triples.size(); ++k) {
         const auto& t = triples[k];
         d2[k] = std::pow(e[t[0]] - 2 * e[t[1]] + e[t[2]], 2);
+        if (scan.active()) {
+          const double r0 = measured.points[t[0]].r_mm, r1 = measured.points[t[1]].r_mm, r2 = measured.points[t[2]].r_mm;
+          dd[k] = 6 * scan.covariance(r0, r0) - 4 * scan.covariance(r0, r1) - 4 * scan.covariance(r1, r2) +
+                  2 * scan.covariance(r0, r2);
+        }
         const double u0 = peak_error(measured.points[t[0]]), u1 = peak_error(measured.points[t[1]]),
                      u2 = peak_error(measured.points[t[2]]);
         uu[k] = u0 * u0 + 4 * u1 * u1 + u2 * u2;
@@ -70,7 +76,7 @@ NoiseEstimate estimate_noise(const TurnTable& measured, const std::vector<double
       }
       auto ratio_median = [&](double sc, double c) {
         std::vector<double> q(triples.size());
-        for (size_t k = 0; k < q.size(); ++k) q[k] = d2[k] / std::max(6 * sc * sc + c * c * uu[k], 1e-300);
+        for (size_t k = 0; k < q.size(); ++k) q[k] = d2[k] / std::max(6 * sc * sc + c * c * uu[k] + dd[k], 1e-300);
         return median(q);
       };
       auto scatter_for = [&](double c) {
@@ -96,7 +102,7 @@ NoiseEstimate estimate_noise(const TurnTable& measured, const std::vector<double
         const double sc = scatter_for(c);
         double ll = 0;
         for (size_t k = 0; k < d2.size(); ++k) {
-          const double var = std::max(6 * sc * sc + c * c * uu[k], 1e-300);
+          const double var = std::max(6 * sc * sc + c * c * uu[k] + dd[k], 1e-300);
           ll -= 0.5 * (std::min(d2[k] / var, 16.0) + std::log(var));
         }
         if (ll > best_ll) best_ll = ll, best_s = sc, trust = c;
@@ -113,7 +119,10 @@ NoiseEstimate estimate_noise(const TurnTable& measured, const std::vector<double
       double mean = v.empty() ? 0 : std::accumulate(v.begin(), v.end(), 0.0) / static_cast<double>(v.size());
       double ss = 0;
       for (double x : v) ss += (x - mean) * (x - mean);
-      s = v.size() > 1 ? std::sqrt(ss / static_cast<double>(v.size() - 1)) : floor_mm;
+      // The scatter beyond the drive error's (which all of a few turns share in good part:
+      // taking all of it off is the lower estimate, the one that raises no alarm).
+      s = v.size() > 1 ? std::sqrt(std::max(0.0, ss / static_cast<double>(v.size() - 1) - scan.drive_mm * scan.drive_mm))
+                       : floor_mm;
       s = std::max(s, floor_mm);
     }
     // Single outliers: beyond 5 sigma of the running median of five turns (a merged or
@@ -124,7 +133,8 @@ NoiseEstimate estimate_noise(const TurnTable& measured, const std::vector<double
         std::vector<double> w;
         for (size_t k = (i >= b + 2 ? i - 2 : b); k < std::min(end, i + 3); ++k)
           if (matched[k]) w.push_back(e[k]);
-        const double sig = std::sqrt(s * s + std::pow(trust * peak_error(measured.points[i]), 2));
+        const double sig =
+            std::sqrt(s * s + std::pow(trust * peak_error(measured.points[i]), 2) + scan.drive_mm * scan.drive_mm);
         out.outlier[i] = w.size() >= 4 && std::fabs(e[i] - median(w)) > 5 * sig;
       }
       const double again = solve(out.outlier, used);
@@ -173,13 +183,27 @@ TuneTable radial_tunes(const Machine& m, unsigned threads) {
 
 namespace {
 
-/// Weighted least squares of y on the columns of A (rows weighted by w = 1/sigma); returns chi2
-/// of the residual and the fitted values.
-double wls(const Eigen::MatrixXd& A, const Eigen::VectorXd& y, const Eigen::VectorXd& w, Eigen::VectorXd* fit) {
-  const Eigen::MatrixXd Aw = w.asDiagonal() * A;
-  const Eigen::VectorXd yw = w.cwiseProduct(y);
+/// Whitening of one probe's residuals: rows divided by sigma, or with the scan noise L^-1 of
+/// the points' covariance (C = L L^T).
+struct ProbeWhitening {
+  Eigen::VectorXd w;   ///< 1 / sigma (diagonal case)
+  Eigen::MatrixXd L;   ///< lower Cholesky factor (correlated case; empty: diagonal)
+  Eigen::MatrixXd C;   ///< the covariance (correlated case)
+  Eigen::MatrixXd operator()(const Eigen::MatrixXd& A) const {
+    if (L.size() == 0) return w.asDiagonal() * A;
+    return L.triangularView<Eigen::Lower>().solve(A);
+  }
+};
+
+/// Generalized least squares of y on the columns of A under the whitening W; returns chi2 of
+/// the residual and the fitted values (and the coefficients).
+double wls(const Eigen::MatrixXd& A, const Eigen::VectorXd& y, const ProbeWhitening& W, Eigen::VectorXd* fit,
+           Eigen::VectorXd* coef = nullptr) {
+  const Eigen::MatrixXd Aw = W(A);
+  const Eigen::VectorXd yw = W(y);
   const Eigen::VectorXd c = Aw.completeOrthogonalDecomposition().solve(yw);
   if (fit) *fit = A * c;
+  if (coef) *coef = c;
   return (yw - Aw * c).squaredNorm();
 }
 
@@ -207,12 +231,17 @@ Located locate(const TurnTable& measured, const std::vector<double>& e, const st
                const NoiseEstimate& noise, const TuneTable& tunes, double dof, double threshold) {
   Located out;
   const size_t N = measured.points.size();
-  for (size_t i = 0; i < N; ++i)
-    if (matched[i] && !noise.outlier[i]) {
-      const double z = e[i] / noise.sigma_mm[i];
-      out.chi2 += z * z;
-      ++out.points;
-    }
+  {
+    std::vector<size_t> pts;
+    for (size_t i = 0; i < N; ++i)
+      if (matched[i] && !noise.outlier[i]) {
+        const double z = e[i] / noise.sigma_mm[i];
+        out.chi2 += z * z;
+        ++out.points;
+        pts.push_back(i);
+      }
+    if (noise.scan.active()) out.chi2 = Whitener(measured, pts, noise.sigma_mm, noise.scan).whitened(e, pts).squaredNorm();
+  }
   // Wilson and Hilferty's cube-root normal approximation of chi2's upper tail.
   if (dof > 0) {
     const double v = dof, zc = (std::cbrt(out.chi2 / v) - (1 - 2 / (9 * v))) / std::sqrt(2 / (9 * v));
@@ -255,15 +284,25 @@ Located locate(const TurnTable& measured, const std::vector<double>& e, const st
     if (n < 3) continue;
     Eigen::VectorXd y(n), w(n), x(n), r(n);
     const double t0 = measured.points[idx.front()].turn, t1 = measured.points[idx.back()].turn;
+    std::vector<double> rr, ss;
     for (Eigen::Index k = 0; k < n; ++k) {
       const auto& pt = measured.points[idx[static_cast<size_t>(k)]];
       y[k] = e[idx[static_cast<size_t>(k)]];
       w[k] = 1 / noise.sigma_mm[idx[static_cast<size_t>(k)]];
       x[k] = t1 > t0 ? 2 * (pt.turn - t0) / (t1 - t0) - 1 : 0;
       r[k] = pt.r_mm;
+      rr.push_back(pt.r_mm);
+      ss.push_back(noise.sigma_mm[idx[static_cast<size_t>(k)]]);
     }
-    const double chi2_0 = w.cwiseProduct(y).squaredNorm();
-    const double sigma_typ = 1 / median(std::vector<double>(w.data(), w.data() + n));
+    ProbeWhitening W;
+    W.w = w;
+    if (noise.scan.active()) {
+      W.C = scan_covariance(rr, ss, noise.scan);
+      W.L = Eigen::LLT<Eigen::MatrixXd>(W.C).matrixL();
+    }
+    const double chi2_0 = W(y).squaredNorm();
+    // One turn's noise: its sigma, with the drive error beside it.
+    const double sigma_typ = std::hypot(1 / median(std::vector<double>(w.data(), w.data() + n)), noise.scan.drive_mm);
     auto turn_of = [&](Eigen::Index k) { return measured.points[idx[static_cast<size_t>(k)]].turn; };
     out.findings.push_back({{"kind", "probe"},
                             {"probe", probe},
@@ -278,7 +317,7 @@ Located locate(const TurnTable& measured, const std::vector<double>& e, const st
     {
       Eigen::MatrixXd A = Eigen::MatrixXd::Ones(n, 1);
       Eigen::VectorXd fit;
-      const double g = chi2_0 - wls(A, y, w, &fit);
+      const double g = chi2_0 - wls(A, y, W, &fit);
       const bool sig = significant(g, 1);
       out.significant = out.significant || sig;
       out.findings.push_back({{"kind", "offset"},
@@ -294,7 +333,7 @@ Located locate(const TurnTable& measured, const std::vector<double>& e, const st
     Eigen::VectorXd trend = Eigen::VectorXd::Zero(n);
     for (int d = 0; d <= std::min<int>(8, static_cast<int>(n / 4)); ++d) {
       Eigen::VectorXd fit;
-      const double c2 = wls(legendre(x, d), y, w, &fit);
+      const double c2 = wls(legendre(x, d), y, W, &fit);
       const double bic = c2 + (d + 1) * logN;
       if (bic < best_bic) best_bic = bic, best_d = d, best_chi2 = c2, trend = fit;
     }
@@ -324,7 +363,8 @@ Located locate(const TurnTable& measured, const std::vector<double>& e, const st
       out.findings.push_back(f);
     }
     const Eigen::MatrixXd T = legendre(x, std::max(best_d, 0));
-    const double chi2_t = wls(T, y, w, nullptr);
+    Eigen::VectorXd trend_fit;
+    const double chi2_t = wls(T, y, W, &trend_fit);
 
     // A coherent oscillation at the radial tune: betatron phase advanced by 2 pi nu_r a turn.
     if (!tunes.r_mm.empty() && n >= 8) {
@@ -336,8 +376,8 @@ Located locate(const TurnTable& measured, const std::vector<double>& e, const st
       A << T, psi.array().cos().matrix(), psi.array().sin().matrix(), psi.array().cos().matrix().cwiseProduct(x),
           psi.array().sin().matrix().cwiseProduct(x);
       Eigen::VectorXd fit;
-      const double c2 = wls(A, y, w, &fit);
-      const Eigen::VectorXd osc = fit - T * (w.asDiagonal() * T).completeOrthogonalDecomposition().solve(w.cwiseProduct(y));
+      const double c2 = wls(A, y, W, &fit);
+      const Eigen::VectorXd osc = fit - trend_fit;
       const double g = chi2_t - c2;
       const bool sig = significant(g, 4);
       out.significant = out.significant || sig;
@@ -358,7 +398,7 @@ Located locate(const TurnTable& measured, const std::vector<double>& e, const st
     // A step over a quadratic background.
     if (n >= 10) {
       const Eigen::MatrixXd Q = legendre(x, 2);
-      const double c2q = wls(Q, y, w, nullptr);
+      const double c2q = wls(Q, y, W, nullptr);
       double best = 0, size = 0;
       Eigen::Index at = -1;
       for (Eigen::Index k = 3; k + 3 <= n; ++k) {
@@ -366,8 +406,8 @@ Located locate(const TurnTable& measured, const std::vector<double>& e, const st
         A << Q, (Eigen::VectorXd::LinSpaced(n, 0, static_cast<double>(n - 1)).array() >= static_cast<double>(k))
                     .cast<double>()
                     .matrix();
-        const Eigen::VectorXd c = (w.asDiagonal() * A).completeOrthogonalDecomposition().solve(w.cwiseProduct(y));
-        const double g = c2q - (w.cwiseProduct(y - A * c)).squaredNorm();
+        Eigen::VectorXd c;
+        const double g = c2q - wls(A, y, W, nullptr, &c);
         if (g > best) best = g, at = k, size = c[3];
       }
       if (at > 0) {
@@ -389,13 +429,18 @@ Located locate(const TurnTable& measured, const std::vector<double>& e, const st
     {
       Eigen::Index k = 0;
       while (k < n) {
+        // The window's mean in units of its own noise (with the drive error: the mean of y over
+        // the window against the square root of the sum of its covariance).
         auto zbar = [&](Eigen::Index c) {
-          double s = 0, s2 = 0;
+          const Eigen::Index a0 = std::max<Eigen::Index>(0, c - 2), a1 = std::min<Eigen::Index>(n - 1, c + 2);
+          double s = 0;
+          if (noise.scan.active()) {
+            for (Eigen::Index j = a0; j <= a1; ++j) s += y[j];
+            return s / std::sqrt(W.C.block(a0, a0, a1 - a0 + 1, a1 - a0 + 1).sum());
+          }
           int m = 0;
-          for (Eigen::Index j = std::max<Eigen::Index>(0, c - 2); j <= std::min<Eigen::Index>(n - 1, c + 2); ++j)
-            s += y[j] * w[j], ++m;
-          s2 = s / std::sqrt(static_cast<double>(m));
-          return s2;
+          for (Eigen::Index j = a0; j <= a1; ++j) s += y[j] * w[j], ++m;
+          return s / std::sqrt(static_cast<double>(m));
         };
         if (std::fabs(zbar(k)) <= 3) {
           ++k;
@@ -408,6 +453,11 @@ Located locate(const TurnTable& measured, const std::vector<double>& e, const st
         if (z - a + 1 < 3) continue;
         double c2 = 0, mean = 0, sw = 0;
         for (Eigen::Index j = a; j <= z; ++j) c2 += y[j] * w[j] * y[j] * w[j], mean += y[j] * w[j] * w[j], sw += w[j] * w[j];
+        if (noise.scan.active()) {
+          const Eigen::Index m = z - a + 1;
+          const Eigen::VectorXd ys = y.segment(a, m);
+          c2 = ys.dot(W.C.block(a, a, m, m).llt().solve(ys));
+        }
         out.findings.push_back({{"kind", "region"},
                                 {"probe", probe},
                                 {"turns", range(turn_of(a), turn_of(z))},

@@ -13,6 +13,7 @@
 #include <cmath>
 #include <limits>
 #include <ctime>
+#include <memory>
 #include <mutex>
 
 #include "turnfit/io/error.hpp"
@@ -43,6 +44,18 @@ FitSummary summarize(const TurnPatternResult& r, const std::vector<double>& sigm
   return f;
 }
 
+FitSummary summarize(const TurnPatternResult& r, const std::vector<double>& sigma_mm, const TurnTable& measured,
+                     const ScanNoise& scan) {
+  FitSummary f = summarize(r, sigma_mm);
+  if (!r.ok || sigma_mm.empty() || !scan.active()) return f;
+  // chi2 with the turns' covariance: the matched turns' residuals whitened.
+  std::vector<size_t> pts;
+  for (size_t i = 0; i < r.delta_mm.size(); ++i)
+    if (r.matched[i]) pts.push_back(i);
+  f.chi2 = Whitener(measured, pts, sigma_mm, scan).whitened(r.delta_mm, pts).squaredNorm();
+  return f;
+}
+
 namespace {
 
 /// One design's residuals (weighted, priors after the data) and which measured turns it matched.
@@ -57,7 +70,10 @@ struct Residuals {
   const TurnPatternProblem& p;
   size_t n = 0, nmeas = 0, nres = 0;
   std::vector<double> lo, range;
-  std::vector<double> inv_sigma;   // per measured point
+  std::vector<double> inv_sigma;   // per measured point: 1 / sigma times the stage weight (white: the stage weight)
+  /// The problem's scan noise (when active): the data residuals are L^-1 e over all measured
+  /// points, each then times inv_sigma (the stage weight alone). Null: e / sigma, point by point.
+  std::unique_ptr<Whitener> white;
   std::vector<double> prior_x0, prior_sigma_x;  // problem priors (sigma > 0)
   std::vector<double> weak_u0;     // weak prior centre (the search's start), scaled
   double weak = 1;
@@ -109,7 +125,12 @@ struct Residuals {
     const std::vector<double> x = x_of(u.data());
     for (size_t i = 0; i < nmeas; ++i) {
       pt.matched[i] = r.ok && r.matched[i];
-      pt.res[i] = (pt.matched[i] ? r.delta_mm[i] : miss_mm) * inv_sigma[i];
+      pt.res[i] = (pt.matched[i] ? r.delta_mm[i] : miss_mm) * (white ? 1.0 : inv_sigma[i]);
+    }
+    if (white) {
+      Eigen::Map<Eigen::VectorXd> z(pt.res.data(), static_cast<Eigen::Index>(nmeas));
+      white->whiten(z);
+      for (size_t i = 0; i < nmeas; ++i) pt.res[i] *= inv_sigma[i];
     }
     size_t k = nmeas;
     for (size_t j = 0; j < n; ++j) {
@@ -247,9 +268,12 @@ struct Residuals {
     matched = 0;
     if (current.res.size() != nres) return;
     linf_mm = 0;
+    Eigen::VectorXd e(static_cast<Eigen::Index>(nmeas));
+    for (size_t i = 0; i < nmeas; ++i) e[static_cast<Eigen::Index>(i)] = current.res[i] / inv_sigma[i];
+    if (white) white->color(e);
     for (size_t i = 0; i < nmeas; ++i) {
       if (!current.matched[i]) continue;
-      const double d = current.res[i] / inv_sigma[i];
+      const double d = e[static_cast<Eigen::Index>(i)];
       ss += d * d;
       linf_mm = std::max(linf_mm, std::fabs(d));
       ++matched;
@@ -415,9 +439,14 @@ void minimax_polish(const TurnPatternProblem& p, const Residuals& res, std::vect
       if (cur.matched[i] && !outlier[i]) rows.push_back(static_cast<Eigen::Index>(i));
     Eigen::MatrixXd Jm(static_cast<Eigen::Index>(rows.size()), static_cast<Eigen::Index>(n));
     Eigen::VectorXd r(static_cast<Eigen::Index>(rows.size()));
+    Eigen::MatrixXd Je;  // whitened fit: the data rows back in mm (stage weights are 1 here)
+    if (res.white) {
+      Je = J.topRows(static_cast<Eigen::Index>(nmeas));
+      res.white->color_columns(Je);
+    }
     for (size_t k = 0; k < rows.size(); ++k) {
       const auto i = rows[k];
-      Jm.row(static_cast<Eigen::Index>(k)) = J.row(i) * sigma[static_cast<size_t>(i)];
+      Jm.row(static_cast<Eigen::Index>(k)) = res.white ? Eigen::RowVectorXd(Je.row(i)) : Eigen::RowVectorXd(J.row(i) * sigma[static_cast<size_t>(i)]);
       r(static_cast<Eigen::Index>(k)) = cur.delta_mm[static_cast<size_t>(i)];
     }
     const Eigen::VectorXd d = lawson_minimax_step(Jm, r, 1e-4);
@@ -730,7 +759,10 @@ LocalSearchResult local_search(TurnPatternProblem& p, const std::vector<double>&
   if (p.current_centroid_shift().x != x0) update_centroid(x0);
   const TurnPatternResult start = simulate(x0);
   if (!start.ok) throw Error(ExitCode::data, p.file() + ": the start cannot be simulated: " + start.reason);
-  out.before = summarize(start, sigma);
+  if (p.scan_noise().active() && estimate)
+    throw Error(ExitCode::data, p.file() + ": scan_noise needs sigma_mm, the turns' independent uncertainty (a fit "
+                                           "cannot estimate it beside the correlated drive error; turnfit-diagnose does)");
+  out.before = summarize(start, sigma, meas, p.scan_noise());
   if (out.before.matched == 0)
     throw Error(ExitCode::data, p.file() + ": the start reaches no measured turn (" + start.end.status + ")");
 
@@ -756,7 +788,12 @@ LocalSearchResult local_search(TurnPatternProblem& p, const std::vector<double>&
   res.nres = nmeas;
   for (int k : res.prior_kind) res.nres += k ? 1 : 0;
   res.inv_sigma.resize(nmeas);
-  for (size_t i = 0; i < nmeas; ++i) res.inv_sigma[i] = 1 / sigma[i];
+  std::vector<size_t> all_points(nmeas);
+  for (size_t i = 0; i < nmeas; ++i) all_points[i] = i;
+  if (p.scan_noise().active()) res.white = std::make_unique<Whitener>(meas, all_points, sigma, p.scan_noise());
+  // A point's row weight: 1 / sigma (whitened: the whitener has it), times the stage weight.
+  auto row_weight = [&](size_t i, double stage) { return res.white ? stage : stage / sigma[i]; };
+  for (size_t i = 0; i < nmeas; ++i) res.inv_sigma[i] = row_weight(i, 1.0);
   res.max_frozen = std::max(0, s.frozen_steps);
   res.broyden = s.broyden;
 
@@ -792,7 +829,7 @@ LocalSearchResult local_search(TurnPatternProblem& p, const std::vector<double>&
       const double last = t_lo + (t_hi - t_lo) * static_cast<double>(st) / stages;
       const std::vector<double> old_inv_sigma = res.inv_sigma;
       for (size_t i = 0; i < nmeas; ++i)
-        res.inv_sigma[i] = (st == stages || meas.points[i].turn <= last ? 1.0 : 1e-3) / sigma[i];
+        res.inv_sigma[i] = row_weight(i, st == stages || meas.points[i].turn <= last ? 1.0 : 1e-3);
       if (st > 1 && res.restart_at(u_of(theta), old_inv_sigma)) ++out.kept_jacobians;
       sum = lm_pass(res, theta, s, 1, count, out.trace);
       out.iterations += static_cast<int>(sum.iterations.size());
@@ -868,7 +905,7 @@ LocalSearchResult local_search(TurnPatternProblem& p, const std::vector<double>&
       out.sigma_mm = est;
     }
     const std::vector<double> old_inv_sigma = res.inv_sigma;
-    for (size_t i = 0; i < nmeas; ++i) res.inv_sigma[i] = 1 / sigma[i];
+    for (size_t i = 0; i < nmeas; ++i) res.inv_sigma[i] = row_weight(i, 1.0);
     // The new pass starts where the last one ended: u's residuals evaluated anew (new weights,
     // new centroid shift), the Jacobian there kept with its rows reweighted (the shift hardly
     // depends on the design: its derivatives are left out).
@@ -930,12 +967,12 @@ LocalSearchResult local_search(TurnPatternProblem& p, const std::vector<double>&
   out.termination = ceres::TerminationTypeToString(sum.termination_type);
   out.x = res.x_of(u.data());
   const TurnPatternResult fin = simulate(out.x);
-  out.after = summarize(fin, sigma);
+  out.after = summarize(fin, sigma, meas, p.scan_noise());
   for (size_t i = 0; i < nmeas; ++i)
     if (outlier_factor[i] > 1)
       out.outliers.push_back({i, fin.ok && fin.matched[i] ? fin.delta_mm[i] : std::nan(""), sigma[i] / outlier_factor[i],
                               sigma[i]});
-  out.before = summarize(start, sigma);  // chi2 with the final sigma, comparable with after's
+  out.before = summarize(start, sigma, meas, p.scan_noise());  // chi2 with the final sigma, comparable with after's
   const double dof = static_cast<double>(out.after.matched) - static_cast<double>(n);
   out.chi2_dof = dof > 0 ? out.after.chi2 / dof : std::nan("");
 

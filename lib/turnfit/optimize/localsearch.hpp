@@ -176,6 +176,10 @@ std::vector<std::string> describe_identifiability(const std::vector<std::string>
 
 /// Summarizes one design against the measurement (sigma per measured point for chi2).
 FitSummary summarize(const TurnPatternResult& r, const std::vector<double>& sigma_mm);
+/// The same with the turns' covariance under the scan noise (chi2 of the whitened residuals
+/// of the matched turns; the plain one when `scan` is inactive or sigma_mm empty).
+FitSummary summarize(const TurnPatternResult& r, const std::vector<double>& sigma_mm, const TurnTable& measured,
+                     const ScanNoise& scan);
 
 /// Fits the problem's variables from x0 by bounded Levenberg-Marquardt on the residuals
 /// (model - measured) / sigma of every measured turn, with the problem's priors and the weak

@@ -72,11 +72,12 @@ std::unique_ptr<TurnPatternProblem> TurnPatternProblem::from_json(const nlohmann
                                                                   const std::string& dir) {
   ProblemKeys k{file};
   static const std::set<std::string> known = {"format",     "name",        "description", "machine",  "peaks",
-                                              "variables",  "objectives",  "constraints", "sigma_mm", "reference", "bunch"};
+                                              "variables",  "objectives",  "constraints", "sigma_mm", "reference", "bunch",
+                                              "scan_noise"};
   for (auto it = j.begin(); it != j.end(); ++it)
     if (!known.count(it.key()))
       k.fail(it.key(), "unknown key in a turn-pattern problem (known: format, name, description, machine, peaks, "
-                       "variables, objectives, constraints, sigma_mm, reference, bunch)");
+                       "variables, objectives, constraints, sigma_mm, scan_noise, reference, bunch)");
 
   // The machine, and every file its model reads. An error in a file the problem names says
   // which key named it (the code stays: 66 for a missing file, 65 for a bad one).
@@ -219,6 +220,20 @@ std::unique_ptr<TurnPatternProblem> TurnPatternProblem::from_json(const nlohmann
     }
   }
 
+  // The probe drive's correlated error (turnfit-problem(5) "scan_noise").
+  ScanNoise scan;
+  if (j.contains("scan_noise")) {
+    const auto& sn = j["scan_noise"];
+    if (!sn.is_object()) k.fail("scan_noise", "expected {\"drive_mm\": rms, \"corr_mm\": length}");
+    for (auto it = sn.begin(); it != sn.end(); ++it)
+      if (it.key() != "drive_mm" && it.key() != "corr_mm")
+        k.fail("scan_noise/" + it.key(), "unknown key (known: drive_mm, corr_mm)");
+    scan.drive_mm = k.number(k.need(sn, "drive_mm", "scan_noise"), "scan_noise/drive_mm");
+    if (scan.drive_mm < 0) k.fail("scan_noise/drive_mm", "must not be negative");
+    if (sn.contains("corr_mm")) scan.corr_mm = k.number(sn["corr_mm"], "scan_noise/corr_mm");
+    if (!(scan.corr_mm > 0)) k.fail("scan_noise/corr_mm", "must be positive");
+  }
+
   // What the probes measure: the bunch's centre (default when the machine has a bunch with
   // spread) or the reference particle.
   std::vector<QuadratureNode> nodes = named_by("machine", [&] { return machine_bunch_quadrature(m); });
@@ -253,6 +268,7 @@ std::unique_ptr<TurnPatternProblem> TurnPatternProblem::from_json(const nlohmann
   p->plan_ = std::move(plan);
   p->turn_count_ = turn_count;
   p->sigma_mm_ = std::move(sigma);
+  p->scan_noise_ = scan;
   p->bunch_mode_ = bunch_mode;
   p->nodes_ = std::move(nodes);
   // The centroid shift at the start, so that every evaluation predicts the bunch's centre from
@@ -295,6 +311,7 @@ std::unique_ptr<TurnPatternProblem> TurnPatternProblem::with_machine(Machine m, 
   p->plan_ = plan_;
   p->turn_count_ = turn_count_;
   p->sigma_mm_ = sigma_mm_;
+  p->scan_noise_ = scan_noise_;
   p->bunch_mode_ = bunch_mode_;
   if (!hold_shift) p->nodes_ = nodes_;
   p->shift_ = shift_;

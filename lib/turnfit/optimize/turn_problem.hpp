@@ -9,6 +9,7 @@
 
 #include "turnfit/machine/machine.hpp"
 #include "turnfit/metrics/metrics.hpp"
+#include "turnfit/metrics/scan_noise.hpp"
 #include "turnfit/optimize/problems.hpp"
 #include "turnfit/track/bunch.hpp"
 #include "turnfit/track/model.hpp"
@@ -100,6 +101,11 @@ class TurnPatternProblem : public Problem {
   /// Peak-position uncertainty per measured point [mm] from the problem's sigma_mm; empty when
   /// the file gives none (a fit then estimates it).
   const std::vector<double>& sigma_mm() const { return sigma_mm_; }
+  /// The probe drive's correlated error (the problem file's "scan_noise"; inactive by default):
+  /// a fit with it weighs each probe's residuals by their full covariance (Whitener).
+  const ScanNoise& scan_noise() const { return scan_noise_; }
+  /// Sets it (not while evaluations run).
+  void set_scan_noise(const ScanNoise& s) { scan_noise_ = s; }
   /// "centroid" (the measured bunch's centre: the reference particle plus the centroid shift)
   /// or "reference" (the reference particle alone): the problem file's "bunch"; by default
   /// "centroid" when the machine has a bunch with spread, else "reference".
@@ -149,6 +155,7 @@ class TurnPatternProblem : public Problem {
   ObjectivePlan plan_;
   bool turn_count_ = true;
   std::vector<double> sigma_mm_;
+  ScanNoise scan_noise_;
   std::string bunch_mode_ = "reference";
   std::vector<QuadratureNode> nodes_;
   CentroidShift shift_;
