@@ -45,8 +45,9 @@ so adding cases, kinds or configurations never changes the cases already drawn.
    U(0.7, 1.4) for "near" (FACTORS). So the sizes follow the tool's own sensitivity, which
    differs by two orders of magnitude between instances (a first harmonic at 2.7 m against one
    at 4.25 m), and "visible" means visible by the tool's own account at low noise with free
-   variables. At paper noise the limits grow and with priors they shrink: the report's own
-   limit then decides (Scoring, "not visible"). The tables were set on tuning seeds only,
+   variables. At paper noise the limits grow (4-12 times, PAPER_LIMIT_RATIO, set on a tuning
+   seed) and a paper-noise case is drawn that much larger; with priors they shrink. The
+   report's own limit then decides (Scoring, "not visible"). The tables were set on tuning seeds only,
    never on the report seeds.
    Outside the catalogue (OUTSIDE; size ~ U(OUTSIDE_SIZES), set from noiseless fits, see there):
    "profile-bump" multiplies a main cavity's radial voltage profile by
@@ -185,6 +186,18 @@ VOLTAGE_VARS = ("vmaincav1", "vmaincav2", "vmaincav3", "vmaincav4", "vftcav", "v
 # is interpolated linearly in r_mm between the tool's grid bumps (every 250 mm) and in width_mm between its
 # widths 250 and 500 mm (clamped to the grid). The limits were never read from the report seeds.
 FACTORS = {"visible": (2.5, 5.0), "near": (0.7, 1.4)}
+# At paper noise, with its scan_noise given, the limits are these times the low-noise ones: the median
+# ratio of the limits turnfit-diagnose (104921e, --scan-noise 0.315,10) reported on tuning master seed
+# 1001 (cases 1-3, paper noise, free variables) to LIMITS, over every instance of the type (ranges:
+# sector 6.2-15, tilt 3.0-5.7, bow 2.9-6.4, n=0 5.5-20, n=1 2.5-23, n=2 2.8-38). A paper-noise case is
+# drawn at FACTORS times the limit times this; the report's own limit still decides what was visible.
+# A drawn effect that moves the truth's reference turns by more than this is shrunk to 0.9 of it before
+# the measurement (cap_effects): the paper-noise sizes (PAPER_LIMIT_RATIO) of report seed 5157125 put a
+# first-harmonic bump of 4.9 mT at 2.7 m (87 mm) into the truth, and peakfind misnumbered 112 turns; a
+# voltage tilt moving turns by 25 mm was numbered right, a field scale moving them by 31 mm was not.
+RAW_CAP_MM = 20.0
+PAPER_LIMIT_RATIO = {("field-harmonic", 0): 12.5, ("field-harmonic", 1): 10.4, ("field-harmonic", 2): 11.1,
+                     "sector-strength": 10.1, "gap-bow": 4.15, "voltage-tilt": 4.66}
 LIMITS = {
     ("field-harmonic", 0): {
         (2000.0, 250.0): 0.000119, (2000.0, 500.0): 4.7e-05, (2250.0, 250.0): 4.32e-05,
@@ -287,9 +300,9 @@ def uniform_size(rng, table, size):
     return rng.uniform(lo, hi)
 
 
-def limit_size(rng, limit, size):
-    """A size FACTORS[size] times the reference detection limit."""
-    return rng.uniform(*FACTORS[size]) * limit
+def limit_size(rng, limit, size, ratio=1.0):
+    """A size FACTORS[size] times the reference detection limit (times the noise's ratio)."""
+    return rng.uniform(*FACTORS[size]) * limit * ratio
 
 
 def tc_name(i):
@@ -300,26 +313,29 @@ def tc_var(i):
     return "tc%02dmb" % i
 
 
-def draw_effect(rng, typ, size, dvars, bounds):
+def draw_effect(rng, typ, size, dvars, bounds, noise="low"):
     """One catalogue effect of this type and size class (the machine-file entry), and the dvars it needs."""
     sign = rng.choice((-1.0, 1.0))
     extra = {}
+
+    def ratio(key):
+        return PAPER_LIMIT_RATIO[key] if noise == "paper" else 1.0
     if typ == "field-harmonic":
         n = rng.choice((0, 1, 2))
         r, w, ph = rng.uniform(2100.0, 4300.0), rng.uniform(200.0, 800.0), rng.uniform(0.0, 360.0)
-        amp = sign * limit_size(rng, interp_limit(LIMITS[(typ, n)], r, w), size)
+        amp = sign * limit_size(rng, interp_limit(LIMITS[(typ, n)], r, w), size, ratio((typ, n)))
         eff = {"type": typ, "n": n, "amplitude_T": amp, "phase_deg": 0.0 if n == 0 else ph, "r_mm": r, "width_mm": w}
     elif typ == "sector-strength":
         eff_sector = rng.randint(1, SECTORS)
-        eff = {"type": typ, "sector": eff_sector, "relative": sign * limit_size(rng, LIMITS[typ][eff_sector], size)}
+        eff = {"type": typ, "sector": eff_sector, "relative": sign * limit_size(rng, LIMITS[typ][eff_sector], size, ratio(typ))}
     elif typ == "gap-bow":
         cav = rng.choice(CAVITIES)
         c = next(x for x in NOMINAL["cavities"] if x["name"] == cav)
         most = 0.95 * (c["rmax_mm"] - c.get("rmin_mm", 0.0)) / 10  # |sagitta| <= a tenth of the gap
-        eff = {"type": typ, "cavity": cav, "sagitta_mm": sign * min(most, limit_size(rng, LIMITS[typ][cav], size))}
+        eff = {"type": typ, "cavity": cav, "sagitta_mm": sign * min(most, limit_size(rng, LIMITS[typ][cav], size, ratio(typ)))}
     elif typ == "voltage-tilt":
         cav = rng.choice(CAVITIES)
-        eff = {"type": typ, "cavity": cav, "slope": sign * limit_size(rng, LIMITS[typ][cav], size), "pivot_rho_n": 0.5}
+        eff = {"type": typ, "cavity": cav, "slope": sign * limit_size(rng, LIMITS[typ][cav], size, ratio(typ)), "pivot_rho_n": 0.5}
     elif typ == "trimcoil-sectors":
         length = rng.randint(3, 9)
         first = rng.randint(1, TC_WITH_VARIABLES - length + 1)
@@ -371,10 +387,11 @@ def draw_case(master, k, args, variables):
     bounds = {n: (lo, hi) for n, _, lo, hi in variables}
     case = {"label": "case%02d" % (k + 1), "index": k, "kind": kind, "amplitude": amplitude, "synth_seed": seed,
             "effects": [], "outside": None}
+    noise = cfg.choice(list(args.noise))
     if kind == "single":
         combos = [(t, s) for t in args.types for s in args.sizes]
         typ, size = deck_entry(master, "singles", combos, counts["single"])
-        eff, extra = draw_effect(rng, typ, size, dvars, bounds)
+        eff, extra = draw_effect(rng, typ, size, dvars, bounds, noise)
         case["effects"].append(eff)
         dvars.update(extra)
     elif kind == "pair":
@@ -382,7 +399,7 @@ def draw_case(master, k, args, variables):
             raise ToolError("a pair needs two --types")
         t1, t2 = rng.sample(list(args.types), 2)
         for t in (t1, t2):
-            eff, extra = draw_effect(rng, t, "visible", dvars, bounds)
+            eff, extra = draw_effect(rng, t, "visible", dvars, bounds, noise)
             case["effects"].append(eff)
             dvars.update(extra)
     elif kind == "outside":
@@ -390,7 +407,7 @@ def draw_case(master, k, args, variables):
         size = deck_entry(master, "outside-size", list(args.sizes), counts["outside"])
         case["outside"] = draw_outside(rng, okind, size)
     case["dvars"] = dvars
-    case["noise"] = cfg.choice(list(args.noise))
+    case["noise"] = noise
     case["variables"] = cfg.choice(list(args.variables))
     return case
 
@@ -468,7 +485,8 @@ def raw_signature(tools, case, d, dvars_path, peaks):
     for path in (truth_machine(case, d, True), truth_machine(case, d, False)):
         p = run([tools["track"], path, "--dvars", dvars_path, "-q", "--no-provenance", "-o", "-"], "turnfit-track")
         out.append(turns_of(read_csv(p.stdout, is_text=True)))
-    dr = [out[0][k] - out[1][k] for k in peaks if k in out[0] and k in out[1]]
+    keys = peaks if peaks is not None else list(out[0])
+    dr = [out[0][k] - out[1][k] for k in keys if k in out[0] and k in out[1]]
     if not dr:
         return (float("nan"), float("nan"))
     return (max(abs(x) for x in dr), math.sqrt(sum(x * x for x in dr) / len(dr)))
@@ -503,6 +521,29 @@ def synth_supports_scan_errors(tools):
     return "--scan-errors" in p.stdout
 
 
+def cap_effects(case, tools, d, dv_path):
+    """Shrinks a case's catalogue effects (not trim coil groups) until the truth's reference turns move by
+    at most RAW_CAP_MM (all turns tracked, before any measurement); records the drawn sizes."""
+    scalable = [e for e in case["effects"] if e["type"] != "trimcoil-sectors"]
+    if not scalable:
+        return
+    for _ in range(4):
+        raw = raw_signature(tools, case, d, dv_path, None)[0]
+        if not raw > RAW_CAP_MM:
+            return
+        f = 0.9 * RAW_CAP_MM / raw
+        for e in scalable:
+            key = SIZE_PARAM[e["type"]]
+            e.setdefault("_drawn_size", abs(e[key]))
+            e[key] *= f
+            e["_size"] = abs(e[key])
+        case["capped"] = True
+    if case.get("capped"):
+        case.setdefault("notes", []).append(
+            "shrunk to move the truth's turns by at most %.0f mm (RAW_CAP_MM): drawn %s" % (
+                RAW_CAP_MM, ", ".join("%.3g" % e["_drawn_size"] for e in scalable)))
+
+
 def measure(case, args, tools, variables, work):
     """Truth machine, synth, peakfind, numbering, raw signature; fills the case row."""
     d = os.path.join(work, case["label"])
@@ -510,6 +551,7 @@ def measure(case, args, tools, variables, work):
     case["dir"] = d
     dv_path = os.path.join(d, "truth-dvars.json")
     write_json(dv_path, case["dvars"])
+    cap_effects(case, tools, d, dv_path)
     tm = truth_machine(case, d)
     drawn = json.loads(json.dumps({k: v for k, v in case.items() if k not in ("dir", "failures", "notes")}))
     case_path = os.path.join(d, "case.json")

@@ -133,9 +133,8 @@ TEST_CASE("bunch: offsets become start states around the injection", "[bunch]") 
 }
 
 TEST_CASE("bunch: files of offsets: any subset of the columns, strict numbers", "[bunch]") {
-  char tmpl[] = "/tmp/turnfit-bunch-XXXXXX";
-  REQUIRE(::mkdtemp(tmpl) != nullptr);
-  const std::string dir = tmpl;
+  const test::TempDir tmp;  // removed again at the end (a mkdtemp folder here was left behind by every run)
+  const std::string dir = tmp.path;
   auto write = [&](const std::string& name, const std::string& text) {
     std::ofstream(dir + "/" + name) << text;
     return dir + "/" + name;
