@@ -1061,18 +1061,28 @@ def main(argv):
                 rep = os.path.join(case["dir"], "report.json")
                 ru0 = resource.getrusage(resource.RUSAGE_CHILDREN)
                 t0 = time.time()
+                diagnosed = True
                 if not (case["reused"] and os.path.exists(rep)):
-                    run([tools["diagnose"], case["problem"], "-o", rep, "--markdown",
-                         os.path.join(case["dir"], "report.md"), "--threads", str(args.threads), "-q"], "turnfit-diagnose")
+                    try:
+                        run([tools["diagnose"], case["problem"], "-o", rep, "--markdown",
+                             os.path.join(case["dir"], "report.md"), "--threads", str(args.threads), "-q"],
+                            "turnfit-diagnose")
+                    except ToolError as e:
+                        # A measurement the diagnosis refuses (a broken turn pattern that leaves an
+                        # objective without turns, say) fails this case, not the run; it is not scored.
+                        case["failures"].append(str(e).splitlines()[-1][:300])
+                        case["verdict"] = "refused"
+                        diagnosed = False
                 else:
                     case["notes"].append("reused the synth and diagnose outputs of an earlier run (--reuse)")
                 case["diagnose_wall_s"] = time.time() - t0
                 ru1 = resource.getrusage(resource.RUSAGE_CHILDREN)
                 case["diagnose_cpu_s"] = (ru1.ru_utime - ru0.ru_utime) + (ru1.ru_stime - ru0.ru_stime)
-                report = json.load(open(rep, encoding="utf-8"))
-                if report.get("format") != "turnfit-diagnosis/1":
-                    raise ToolError("%s: report format %r, expected turnfit-diagnosis/1" % (rep, report.get("format")))
-                score(case, report)
+                if diagnosed:
+                    report = json.load(open(rep, encoding="utf-8"))
+                    if report.get("format") != "turnfit-diagnosis/1":
+                        raise ToolError("%s: report format %r, expected turnfit-diagnosis/1" % (rep, report.get("format")))
+                    score(case, report)
             print(row_text(case))
             print_details(case)
             sys.stdout.flush()
