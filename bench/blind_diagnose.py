@@ -530,7 +530,7 @@ def cap_effects(case, tools, d, dv_path):
     for _ in range(4):
         raw = raw_signature(tools, case, d, dv_path, None)[0]
         if not raw > RAW_CAP_MM:
-            return
+            break
         f = 0.9 * RAW_CAP_MM / raw
         for e in scalable:
             key = SIZE_PARAM[e["type"]]

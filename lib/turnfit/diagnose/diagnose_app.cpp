@@ -179,7 +179,12 @@ std::string diagnosis_markdown(const TurnPatternProblem& p, const json& r) {
   for (auto it = r["noise"]["probes"].begin(); it != r["noise"]["probes"].end(); ++it)
     md << " " << it.key() << " " << num(it.value()["scatter_mm"]) << " mm (peak uncertainties times "
        << num(it.value()["peak_trust"], 2) << ");";
-  md << " " << r["noise"]["outliers"] << " single outlier(s) left out.\n\n";
+  md << " " << r["noise"]["outliers"] << " single outlier(s) left out.";
+  if (r["noise"].contains("scan_noise"))
+    md << " Beside it, the probe drive's error given, " << num(r["noise"]["scan_noise"]["drive_mm"])
+       << " mm correlated over " << num(r["noise"]["scan_noise"]["corr_mm"])
+       << " mm: every chi2 here is taken with the turns' whole covariance.";
+  md << "\n\n";
 
   if (!r["effects"].empty()) {
     md << "## Missing physics\n\n";
