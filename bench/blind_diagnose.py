@@ -191,8 +191,8 @@ FACTORS = {"visible": (2.5, 5.0), "near": (0.7, 1.4)}
 # 1001 (cases 1-3, paper noise, free variables) to LIMITS, over every instance of the type (ranges:
 # sector 6.2-15, tilt 3.0-5.7, bow 2.9-6.4, n=0 5.5-20, n=1 2.5-23, n=2 2.8-38). A paper-noise case is
 # drawn at FACTORS times the limit times this; the report's own limit still decides what was visible.
-# A drawn effect that moves the truth's reference turns by more than this is shrunk to 0.9 of it before
-# the measurement (cap_effects): the paper-noise sizes (PAPER_LIMIT_RATIO) of report seed 5157125 put a
+# A drawn effect that alone moves the truth's reference turns by more than this is shrunk to 0.9 of it
+# before the measurement (cap_effects): the paper-noise sizes (PAPER_LIMIT_RATIO) of report seed 5157125 put a
 # first-harmonic bump of 4.9 mT at 2.7 m (87 mm) into the truth, and peakfind misnumbered 112 turns; a
 # voltage tilt moving turns by 25 mm was numbered right, a field scale moving them by 31 mm was not.
 RAW_CAP_MM = 20.0
@@ -522,26 +522,30 @@ def synth_supports_scan_errors(tools):
 
 
 def cap_effects(case, tools, d, dv_path):
-    """Shrinks a case's catalogue effects (not trim coil groups) until the truth's reference turns move by
-    at most RAW_CAP_MM (all turns tracked, before any measurement); records the drawn sizes."""
+    """Shrinks each of a case's catalogue effects (not trim coil groups) until it alone moves the truth's
+    reference turns by at most RAW_CAP_MM (all turns tracked, before any measurement; each effect on its
+    own, so that a pair keeps its smaller member's size); records the drawn sizes."""
     scalable = [e for e in case["effects"] if e["type"] != "trimcoil-sectors"]
-    if not scalable:
-        return
-    for _ in range(4):
-        raw = raw_signature(tools, case, d, dv_path, None)[0]
-        if not raw > RAW_CAP_MM:
-            break
-        f = 0.9 * RAW_CAP_MM / raw
+    every = case["effects"]
+    try:
         for e in scalable:
-            key = SIZE_PARAM[e["type"]]
-            e.setdefault("_drawn_size", abs(e[key]))
-            e[key] *= f
-            e["_size"] = abs(e[key])
+            case["effects"] = [e]
+            for _ in range(4):
+                raw = raw_signature(tools, case, d, dv_path, None)[0]
+                if not raw > RAW_CAP_MM:
+                    break
+                key = SIZE_PARAM[e["type"]]
+                e.setdefault("_drawn_size", abs(e[key]))
+                e[key] *= 0.9 * RAW_CAP_MM / raw
+                e["_size"] = abs(e[key])
+    finally:
+        case["effects"] = every
+    capped = [e for e in scalable if "_drawn_size" in e]
+    if capped:
         case["capped"] = True
-    if case.get("capped"):
         case.setdefault("notes", []).append(
-            "shrunk to move the truth's turns by at most %.0f mm (RAW_CAP_MM): drawn %s" % (
-                RAW_CAP_MM, ", ".join("%.3g" % e["_drawn_size"] for e in scalable)))
+            "shrunk to move the truth's turns by at most %.0f mm each (RAW_CAP_MM): %s" % (
+                RAW_CAP_MM, ", ".join("%s drawn %.3g" % (e["type"], e["_drawn_size"]) for e in capped)))
 
 
 def measure(case, args, tools, variables, work):

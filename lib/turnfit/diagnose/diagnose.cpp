@@ -230,7 +230,7 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
     }
     rows.white = Whitener(meas, rows.point, rows.sigma, scan);
   };
-  // chi2 of a residual over the points flagged, with the turns' covariance (lost turns: `lost`).
+  // chi2 of a residual over the points flagged, with the turns' covariance (the caller puts a lost turn in).
   auto chi2_over = [&](const std::vector<double>& ev, const std::vector<unsigned char>& use) {
     std::vector<size_t> pts;
     for (size_t i = 0; i < N; ++i)
