@@ -235,7 +235,7 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
     std::vector<size_t> pts;
     for (size_t i = 0; i < N; ++i)
       if (use[i]) pts.push_back(i);
-    return Whitener(meas, pts, rows.sigma, scan).whitened(ev, pts).squaredNorm();
+    return Whitener(meas, pts, rows.sigma, scan).whitened(ev).squaredNorm();
   };
 
   // A residual on the used rows (and the outliers, shown but not fitted); NaN elsewhere.
@@ -306,19 +306,13 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
     std::vector<unsigned char> m;
     const std::vector<double> ev = residual(*S.prob, S.x, m);
     ++evaluations;
-    double c = 0;
-    if (scan.active()) {
-      std::vector<double> e10 = ev;
-      std::vector<unsigned char> use(N, 0);
-      for (size_t i = 0; i < N; ++i) {
-        use[i] = !out.noise.outlier[i];
-        if (!m[i]) e10[i] = 10 * rows.sigma[i];  // a lost turn: 10 sigma
-      }
-      c = chi2_over(e10, use);
-    } else {
-      for (size_t i = 0; i < N; ++i)
-        if (!out.noise.outlier[i]) c += m[i] ? std::pow(ev[i] / rows.sigma[i], 2) : 100;  // a lost turn: 10 sigma
+    std::vector<double> e10 = ev;
+    std::vector<unsigned char> use(N, 0);
+    for (size_t i = 0; i < N; ++i) {
+      use[i] = !out.noise.outlier[i];
+      if (!m[i]) e10[i] = 10 * rows.sigma[i];  // a lost turn: 10 sigma
     }
+    double c = chi2_over(e10, use);
     const auto& vars = S.prob->variables();
     for (size_t j = 0; j < vars.size(); ++j)
       if (vars[j].sigma > 0) c += std::pow((S.x[j] - vars[j].start) / vars[j].sigma, 2);
@@ -485,10 +479,10 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
     }
     // Effective degrees of freedom: data rows less the trace of the data part of the hat matrix.
     const double hat = base.Q.topRows(static_cast<Index>(nd)).squaredNorm();
-    double c2 = scan.active() ? L.z.head(static_cast<Index>(nd)).squaredNorm() : 0, ss = 0, linf = 0;
+    const double c2 = L.z.head(static_cast<Index>(nd)).squaredNorm();
+    double ss = 0, linf = 0;
     for (size_t r = 0; r < nd; ++r) {
       const double d = e_state[rows.point[r]];
-      if (!scan.active()) c2 += std::pow(d / rows.sigma[rows.point[r]], 2);
       ss += d * d, linf = std::max(linf, std::fabs(d));
     }
     out.after = {linf, std::sqrt(ss / static_cast<double>(nd)), c2, c2 / (static_cast<double>(nd) - hat),
@@ -976,9 +970,8 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
       const MatrixXd PC = best->row->C - base.Q * (base.Q.transpose() * best->row->C);
       const VectorXd full = -(PC * best->row->sc.c);
       VectorXd sgn = full.head(static_cast<Index>(nd));
-      if (scan.active()) rows.white.color(sgn);
-      for (size_t rr = 0; rr < nd; ++rr)
-        sel.signature_mm[rows.point[rr]] = scan.active() ? sgn[static_cast<Index>(rr)] : sgn[static_cast<Index>(rr)] * rows.sigma[rows.point[rr]];
+      rows.white.color(sgn);  // back to mm
+      for (size_t rr = 0; rr < nd; ++rr) sel.signature_mm[rows.point[rr]] = sgn[static_cast<Index>(rr)];
     }
     sel.screen = eff;
     selected.push_back(std::move(sel));
@@ -1075,16 +1068,9 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
   // "before" with the final noise, so that before and after compare on one scale (its dof and
   // held-out figure stay those of round 1).
   {
-    double c2 = 0;
-    size_t n_used = 0;
     std::vector<unsigned char> use(N, 0);
-    for (size_t i = 0; i < N; ++i)
-      if (!std::isnan(out.residual_before_mm[i]) && !out.noise.outlier[i]) {
-        use[i] = 1;
-        if (!scan.active()) c2 += std::pow(out.residual_before_mm[i] / rows.sigma[i], 2);
-        ++n_used;
-      }
-    if (scan.active()) c2 = chi2_over(out.residual_before_mm, use);
+    for (size_t i = 0; i < N; ++i) use[i] = !std::isnan(out.residual_before_mm[i]) && !out.noise.outlier[i];
+    const double c2 = chi2_over(out.residual_before_mm, use);
     out.before_first_noise_chi2 = out.before.chi2;
     out.before.chi2 = c2;
     out.before.chi2_per_dof = c2 / out.before.dof;

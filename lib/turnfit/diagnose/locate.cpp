@@ -183,24 +183,15 @@ TuneTable radial_tunes(const Machine& m, unsigned threads) {
 
 namespace {
 
-/// Whitening of one probe's residuals: rows divided by sigma, or with the scan noise L^-1 of
-/// the points' covariance (C = L L^T).
-struct ProbeWhitening {
-  Eigen::VectorXd w;   ///< 1 / sigma (diagonal case)
-  Eigen::MatrixXd L;   ///< lower Cholesky factor (correlated case; empty: diagonal)
-  Eigen::MatrixXd C;   ///< the covariance (correlated case)
-  Eigen::MatrixXd operator()(const Eigen::MatrixXd& A) const {
-    if (L.size() == 0) return w.asDiagonal() * A;
-    return L.triangularView<Eigen::Lower>().solve(A);
-  }
-};
-
-/// Generalized least squares of y on the columns of A under the whitening W; returns chi2 of
-/// the residual and the fitted values (and the coefficients).
-double wls(const Eigen::MatrixXd& A, const Eigen::VectorXd& y, const ProbeWhitening& W, Eigen::VectorXd* fit,
+/// Generalized least squares of y on the columns of A under the whitening W (one probe's
+/// points: divided by sigma, or by the Cholesky factor of their covariance with scan noise);
+/// returns chi2 of the residual and the fitted values (and the coefficients).
+double wls(const Eigen::MatrixXd& A, const Eigen::VectorXd& y, const Whitener& W, Eigen::VectorXd* fit,
            Eigen::VectorXd* coef = nullptr) {
-  const Eigen::MatrixXd Aw = W(A);
-  const Eigen::VectorXd yw = W(y);
+  Eigen::MatrixXd Aw = A;
+  W.whiten_columns(Aw);
+  Eigen::VectorXd yw = y;
+  W.whiten(yw);
   const Eigen::VectorXd c = Aw.completeOrthogonalDecomposition().solve(yw);
   if (fit) *fit = A * c;
   if (coef) *coef = c;
@@ -234,13 +225,9 @@ Located locate(const TurnTable& measured, const std::vector<double>& e, const st
   {
     std::vector<size_t> pts;
     for (size_t i = 0; i < N; ++i)
-      if (matched[i] && !noise.outlier[i]) {
-        const double z = e[i] / noise.sigma_mm[i];
-        out.chi2 += z * z;
-        ++out.points;
-        pts.push_back(i);
-      }
-    if (noise.scan.active()) out.chi2 = Whitener(measured, pts, noise.sigma_mm, noise.scan).whitened(e, pts).squaredNorm();
+      if (matched[i] && !noise.outlier[i]) pts.push_back(i);
+    out.points = pts.size();
+    out.chi2 = Whitener(measured, pts, noise.sigma_mm, noise.scan).whitened(e).squaredNorm();
   }
   // Wilson and Hilferty's cube-root normal approximation of chi2's upper tail.
   if (dof > 0) {
@@ -294,13 +281,10 @@ Located locate(const TurnTable& measured, const std::vector<double>& e, const st
       rr.push_back(pt.r_mm);
       ss.push_back(noise.sigma_mm[idx[static_cast<size_t>(k)]]);
     }
-    ProbeWhitening W;
-    W.w = w;
-    if (noise.scan.active()) {
-      W.C = scan_covariance(rr, ss, noise.scan);
-      W.L = Eigen::LLT<Eigen::MatrixXd>(W.C).matrixL();
-    }
-    const double chi2_0 = W(y).squaredNorm();
+    const Whitener W(measured, idx, noise.sigma_mm, noise.scan);
+    // The points' covariance, for the regions' window sums (scan noise only).
+    const Eigen::MatrixXd C = noise.scan.active() ? scan_covariance(rr, ss, noise.scan) : Eigen::MatrixXd();
+    const double chi2_0 = W.whitened(e).squaredNorm();
     // One turn's noise: its sigma, with the drive error beside it.
     const double sigma_typ = std::hypot(1 / median(std::vector<double>(w.data(), w.data() + n)), noise.scan.drive_mm);
     auto turn_of = [&](Eigen::Index k) { return measured.points[idx[static_cast<size_t>(k)]].turn; };
@@ -436,7 +420,7 @@ Located locate(const TurnTable& measured, const std::vector<double>& e, const st
           double s = 0;
           if (noise.scan.active()) {
             for (Eigen::Index j = a0; j <= a1; ++j) s += y[j];
-            return s / std::sqrt(W.C.block(a0, a0, a1 - a0 + 1, a1 - a0 + 1).sum());
+            return s / std::sqrt(C.block(a0, a0, a1 - a0 + 1, a1 - a0 + 1).sum());
           }
           int m = 0;
           for (Eigen::Index j = a0; j <= a1; ++j) s += y[j] * w[j], ++m;
@@ -456,7 +440,7 @@ Located locate(const TurnTable& measured, const std::vector<double>& e, const st
         if (noise.scan.active()) {
           const Eigen::Index m = z - a + 1;
           const Eigen::VectorXd ys = y.segment(a, m);
-          c2 = ys.dot(W.C.block(a, a, m, m).llt().solve(ys));
+          c2 = ys.dot(C.block(a, a, m, m).llt().solve(ys));
         }
         out.findings.push_back({{"kind", "region"},
                                 {"probe", probe},

@@ -45,7 +45,7 @@ Eigen::MatrixXd scan_covariance(const std::vector<double>& r_mm, const std::vect
 
 Whitener::Whitener(const TurnTable& meas, const std::vector<size_t>& points, const std::vector<double>& sigma_mm,
                    const ScanNoise& noise)
-    : size_(points.size()), diagonal_(!noise.active()) {
+    : size_(points.size()), points_(points), diagonal_(!noise.active()) {
   for (size_t i : points)
     if (!(sigma_mm[i] > 0) || !std::isfinite(sigma_mm[i]))
       throw Error(ExitCode::software, "Whitener: a sigma that is not positive");
@@ -108,9 +108,9 @@ void Whitener::color_columns(Eigen::Ref<Eigen::MatrixXd> M) const {
     M.middleRows(b.begin, b.n) = (b.L.triangularView<Eigen::Lower>() * M.middleRows(b.begin, b.n)).eval();
 }
 
-Eigen::VectorXd Whitener::whitened(const std::vector<double>& e_full, const std::vector<size_t>& points) const {
-  Eigen::VectorXd z(static_cast<Eigen::Index>(points.size()));
-  for (size_t k = 0; k < points.size(); ++k) z[static_cast<Eigen::Index>(k)] = e_full[points[k]];
+Eigen::VectorXd Whitener::whitened(const std::vector<double>& e_full) const {
+  Eigen::VectorXd z(static_cast<Eigen::Index>(points_.size()));
+  for (size_t k = 0; k < points_.size(); ++k) z[static_cast<Eigen::Index>(k)] = e_full[points_[k]];
   whiten(z);
   return z;
 }

@@ -52,7 +52,7 @@ class Whitener {
   /// Each column of M <- L column.
   void color_columns(Eigen::Ref<Eigen::MatrixXd> M) const;
   /// Whitened residual of e (indexed like meas.points) over the included points.
-  Eigen::VectorXd whitened(const std::vector<double>& e_full, const std::vector<size_t>& points) const;
+  Eigen::VectorXd whitened(const std::vector<double>& e_full) const;
 
  private:
   struct Block {
@@ -60,6 +60,7 @@ class Whitener {
     Eigen::MatrixXd L;  ///< lower Cholesky factor of the block's covariance
   };
   size_t size_ = 0;
+  std::vector<size_t> points_;  ///< the included points
   bool diagonal_ = true;
   Eigen::VectorXd sigma_;     ///< per included point (diagonal case)
   std::vector<Block> blocks_;  ///< per probe (correlated case)

@@ -52,7 +52,7 @@ FitSummary summarize(const TurnPatternResult& r, const std::vector<double>& sigm
   std::vector<size_t> pts;
   for (size_t i = 0; i < r.delta_mm.size(); ++i)
     if (r.matched[i]) pts.push_back(i);
-  f.chi2 = Whitener(measured, pts, sigma_mm, scan).whitened(r.delta_mm, pts).squaredNorm();
+  f.chi2 = Whitener(measured, pts, sigma_mm, scan).whitened(r.delta_mm).squaredNorm();
   return f;
 }
 
