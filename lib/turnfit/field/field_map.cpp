@@ -3,6 +3,7 @@
 
 #include <Eigen/Dense>
 #include <cmath>
+#include <mutex>
 
 #include "turnfit/io/error.hpp"
 
@@ -117,6 +118,42 @@ void PolarFieldMap::build() {
   }
   patch_ = coef->data();
   coef_ = std::move(coef);
+  row_cache_ = std::make_shared<RowCache>();
+}
+
+struct PolarFieldMap::RowCache {
+  std::mutex mu;
+  std::vector<std::shared_ptr<const FieldRowTable>> tables;
+};
+
+std::shared_ptr<const FieldRowTable> PolarFieldMap::row_table(const std::vector<double>& v, size_t max_bytes) const {
+  if (!row_cache_ || v.empty()) return nullptr;
+  const size_t bytes = static_cast<size_t>(grid_.nr - 1) * grid_.ntheta * v.size() * sizeof(FieldRowTable::Rows);
+  if (bytes > max_bytes) return nullptr;
+  std::lock_guard<std::mutex> lock(row_cache_->mu);
+  for (const auto& t : row_cache_->tables)
+    if (t->v == v) return t;
+  auto t = std::make_shared<FieldRowTable>();
+  t->v = v;
+  t->nslot = static_cast<int>(v.size());
+  t->ntheta = grid_.ntheta;
+  t->nr = grid_.nr;
+  t->rows.resize(static_cast<size_t>(grid_.nr - 1) * grid_.ntheta * v.size());
+  for (int i = 0; i < grid_.nr - 1; ++i)
+    for (int j = 0; j < grid_.ntheta; ++j)
+      for (int s = 0; s < t->nslot; ++s) {
+        // The expressions of sample(), in its order.
+        const auto& a = patch_[static_cast<size_t>(i) * grid_.ntheta + j];
+        const double vs = v[static_cast<size_t>(s)];
+        FieldRowTable::Rows& q = t->rows[(static_cast<size_t>(i) * grid_.ntheta + j) * t->nslot + s];
+        for (int k = 0; k < 4; ++k) {
+          const double* c = &a[k * 4];
+          q.row[k] = ((c[3] * vs + c[2]) * vs + c[1]) * vs + c[0];
+          q.drow[k] = (3 * c[3] * vs + 2 * c[2]) * vs + c[1];
+        }
+      }
+  row_cache_->tables.push_back(t);
+  return t;
 }
 
 bool PolarFieldMap::sample(double r_m, double theta_rad, FieldSample& out) const {

@@ -1,9 +1,15 @@
 // Fifth-order Runge-Kutta (Dormand-Prince) in azimuth with steps of whole map cells; gap and
-// probe crossings landed on exactly (the default integrator).
+// probe crossings landed on exactly (the default integrator). Two drivers share one particle
+// (AzParticle: its state, its gap and probe events, what it records): the reference stepper
+// takes one particle with every field sample through TrackModel::field; the group stepper
+// takes up to kMaxLanes particles that start at one azimuth through the same grid steps
+// together, sampling the main field from precomputed rows (FieldRowTable) at the stage
+// azimuths, which every grid step repeats.
 #include <algorithm>
 #include <array>
 #include <cmath>
 #include <limits>
+#include <memory>
 
 #include "turnfit/physics/azimuth_eom.hpp"
 #include "turnfit/track/integrators.hpp"
@@ -27,6 +33,20 @@ double nearest(double th, double ref) { return th + kTwoPi * std::round((ref - t
 // equations in physics/azimuth_eom.hpp.
 using AzState = std::array<double, 5>;
 
+// The fifth-order Dormand-Prince solution (Hairer, Norsett, Wanner, Solving ODEs I, Table
+// II.5.2) used as a fixed-step method: on the PSI Ring map it reaches RK4's accuracy with steps
+// twice as long, and a fixed grid-aligned step keeps turn radii smooth functions of the design
+// variables (an adaptive step would not).
+constexpr int kStages = 6;
+constexpr double kC[kStages] = {0, 1.0 / 5, 3.0 / 10, 4.0 / 5, 8.0 / 9, 1};
+constexpr double kA[kStages][5] = {{0, 0, 0, 0, 0},
+                                   {1.0 / 5, 0, 0, 0, 0},
+                                   {3.0 / 40, 9.0 / 40, 0, 0, 0},
+                                   {44.0 / 45, -56.0 / 15, 32.0 / 9, 0, 0},
+                                   {19372.0 / 6561, -25360.0 / 2187, 64448.0 / 6561, -212.0 / 729, 0},
+                                   {9017.0 / 3168, -355.0 / 33, 46732.0 / 5247, 49.0 / 176, -5103.0 / 18656}};
+constexpr double kB[kStages] = {35.0 / 384, 0, 500.0 / 1113, 125.0 / 192, -2187.0 / 6784, 11.0 / 84};
+
 struct AzRhs {
   const TrackModel& m;
   double inv_brho = 0;  // sign(q) / (B rho)
@@ -46,35 +66,25 @@ struct AzRhs {
   }
 };
 
-/// One step of the fifth-order Dormand-Prince solution (Hairer, Norsett, Wanner, Solving ODEs I,
-/// Table II.5.2) used as a fixed-step method: on the PSI Ring map it reaches RK4's accuracy with
-/// steps twice as long, and a fixed grid-aligned step keeps turn radii smooth functions of the
-/// design variables (an adaptive step would not).
+/// One step of h from th; false (y untouched) when a stage left the map.
 bool step_az(AzRhs& f, double th, double h, AzState& y) {
-  static const double c[6] = {0, 1.0 / 5, 3.0 / 10, 4.0 / 5, 8.0 / 9, 1};
-  static const double a[6][5] = {{0, 0, 0, 0, 0},
-                                 {1.0 / 5, 0, 0, 0, 0},
-                                 {3.0 / 40, 9.0 / 40, 0, 0, 0},
-                                 {44.0 / 45, -56.0 / 15, 32.0 / 9, 0, 0},
-                                 {19372.0 / 6561, -25360.0 / 2187, 64448.0 / 6561, -212.0 / 729, 0},
-                                 {9017.0 / 3168, -355.0 / 33, 46732.0 / 5247, 49.0 / 176, -5103.0 / 18656}};
-  static const double b[6] = {35.0 / 384, 0, 500.0 / 1113, 125.0 / 192, -2187.0 / 6784, 11.0 / 84};
-  AzState k[6], t;
-  for (int st = 0; st < 6; ++st) {
+  AzState k[kStages], t;
+  for (int st = 0; st < kStages; ++st) {
     for (int i = 0; i < 5; ++i) {
       double acc = y[i];
-      for (int j = 0; j < st; ++j) acc += h * a[st][j] * k[j][i];
+      for (int j = 0; j < st; ++j) acc += h * kA[st][j] * k[j][i];
       t[i] = acc;
     }
-    if (!f(th + c[st] * h, t, k[st])) return false;
+    if (!f(th + kC[st] * h, t, k[st])) return false;
   }
   for (int i = 0; i < 5; ++i) {
     double acc = 0;
-    for (int st = 0; st < 6; ++st) acc += b[st] * k[st][i];
+    for (int st = 0; st < kStages; ++st) acc += kB[st] * k[st][i];
     y[i] += h * acc;
   }
   return true;
 }
+
 /// The step [rad]: the largest whole number of cells within `step_deg`, or the cell divided
 /// by the smallest whole number that brings it within `step_deg`.
 double azimuth_step(double cell, double step_deg) {
@@ -94,53 +104,92 @@ double crossing_of(const TrackModel& m, const Event& e, double r) {
   return e.kind == 0 ? m.gaps[e.index].crossing_azimuth(r) : m.probes[e.index].crossing_azimuth(r);
 }
 
-}  // namespace
-
-TrackEnd track_azimuth(const TrackModel& m, const ParticleState& s0, const TrackSettings& st,
-                       std::vector<TurnRecord>& turns, std::vector<KickRecord>* kicks,
-                       std::vector<PathPoint>* path) {
+/// One particle of the azimuth integrator: state, events, records.
+struct AzParticle {
+  const TrackModel& m;
+  const TrackSettings& st;
+  std::vector<TurnRecord>* turns;
+  std::vector<KickRecord>* kicks;
+  std::vector<PathPoint>* path;
+  AzRhs f;
+  AzState y{};
+  double P = 0;  // beta gamma
+  double th = 0, th0 = 0, th_end = 0;
+  double dnode = 0, node0 = 0;
+  std::vector<Event> events;
   TrackEnd end;
-  double P = std::sqrt(s0.px * s0.px + s0.py * s0.py + s0.pz * s0.pz);  // beta gamma
-  double th = std::atan2(s0.y, s0.x);
-  const double th0 = th;
-  const double th_end = th0 + kTwoPi * st.turns;
-  AzState y;
-  y[0] = std::hypot(s0.x, s0.y);
-  y[1] = (s0.px * std::cos(th) + s0.py * std::sin(th)) / P;
-  y[2] = s0.z;
-  y[3] = s0.pz / P;
-  y[4] = s0.t;
-  const double sign = m.charge_e >= 0 ? 1.0 : -1.0;
-  auto set_momentum = [&](AzRhs& f) {
+
+  AzParticle(const TrackModel& model, const ParticleState& s0, const TrackSettings& settings,
+             std::vector<TurnRecord>* t, std::vector<KickRecord>* k, std::vector<PathPoint>* p)
+      : m(model), st(settings), turns(t), kicks(k), path(p), f{model} {
+    P = std::sqrt(s0.px * s0.px + s0.py * s0.py + s0.pz * s0.pz);
+    th = std::atan2(s0.y, s0.x);
+    th0 = th;
+    th_end = th0 + kTwoPi * st.turns;
+    y[0] = std::hypot(s0.x, s0.y);
+    y[1] = (s0.px * std::cos(th) + s0.py * std::sin(th)) / P;
+    y[2] = s0.z;
+    y[3] = s0.pz / P;
+    y[4] = s0.t;
+    set_momentum();
+    for (size_t g = 0; g < m.gaps.size(); ++g) events.push_back({0, static_cast<int>(g), 0.0});
+    for (size_t q = 0; q < m.probes.size(); ++q) events.push_back({1, static_cast<int>(q), 0.0});
+    for (auto& e : events) {
+      const double c = crossing_of(m, e, y[0]);
+      e.next = std::isnan(c) ? std::numeric_limits<double>::infinity() : next_after(c, th + 1e-12);
+    }
+    const PolarGrid& g = m.map.grid();
+    dnode = azimuth_step(g.dtheta_rad(), st.step_deg);
+    node0 = g.theta_min_rad();
+  }
+
+  void set_momentum() {
+    const double sign = m.charge_e >= 0 ? 1.0 : -1.0;
     const double gamma = std::sqrt(1 + P * P);
     const double brho = P * m.mass_MeV * 1e6 / (kSpeedOfLight * std::fabs(m.charge_e));
     f.inv_brho = sign / brho;
     f.inv_v = gamma / (P * kSpeedOfLight);
-  };
-  AzRhs f{m};
-  set_momentum(f);
-
-  std::vector<Event> events;
-  for (size_t g = 0; g < m.gaps.size(); ++g) events.push_back({0, static_cast<int>(g), 0.0});
-  for (size_t p = 0; p < m.probes.size(); ++p) events.push_back({1, static_cast<int>(p), 0.0});
-  for (auto& e : events) {
-    const double c = crossing_of(m, e, y[0]);
-    e.next = std::isnan(c) ? std::numeric_limits<double>::infinity() : next_after(c, th + 1e-12);
   }
-  const PolarGrid& g = m.map.grid();
-  const double dnode = azimuth_step(g.dtheta_rad(), st.step_deg);
-  const double node0 = g.theta_min_rad();
-  const double mass = m.mass_MeV;
-  auto energy = [&] { return (std::sqrt(1 + P * P) - 1) * mass; };
+  double energy() const { return (std::sqrt(1 + P * P) - 1) * m.mass_MeV; }
+  bool running() const { return !end.lost && th < th_end - 1e-13; }
+
+  /// The next grid node after th, or the end when a node is within rounding of it (else the
+  /// run would stop a hair short and miss an element on the last azimuth).
+  double node_stop(double from) const {
+    const double node = node0 + dnode * (std::floor((from - node0) / dnode + 1e-9) + 1);
+    return node > th_end - 1e-9 ? th_end : node;
+  }
+
+  /// The earliest event before `stop` (which it then becomes), or -1. Events close to th are
+  /// refreshed from the current radius first.
+  int next_event(double& stop) {
+    int which = -1;
+    for (size_t i = 0; i < events.size(); ++i) {
+      Event& e = events[i];
+      if (e.next - th < 4 * dnode) {
+        const double c = crossing_of(m, e, y[0]);
+        if (!std::isnan(c)) e.next = nearest(c, e.next);
+      }
+      // An element exactly at the last azimuth (a probe at the injection azimuth after whole
+      // turns) is crossed within the run: allow rounding of the unwrapped azimuths.
+      const bool at_end = stop >= th_end && e.next <= th_end + 1e-9;
+      if (e.next < stop || at_end) {
+        stop = e.next;
+        which = static_cast<int>(i);
+      }
+    }
+    return which;
+  }
+
   // Losses are reported at the particle's last state (y, th), which the '# end' line repeats.
-  auto lose = [&](const std::string& why) {
+  void lose(const std::string& why) {
     end.lost = true;
     end.status = "lost: " + why + fmt(" at r = %.1f mm, azimuth %.2f deg, turn %.3f", y[0] * 1e3, wrap_deg(th),
                                       (th - th0) / kTwoPi);
-  };
-  // A step of h left the map: advance by the largest part of it that stays inside (bisection),
-  // so the loss is reported where the particle reaches the edge, not a step earlier.
-  auto to_edge = [&](double h) {
+  }
+  /// A step of h left the map: advance by the largest part of it that stays inside (bisection),
+  /// so the loss is reported where the particle reaches the edge, not a step earlier.
+  void to_edge(double h) {
     double lo = 0, hi = h;
     AzState inside = y;
     for (int k = 0; k < 48; ++k) {
@@ -155,54 +204,40 @@ TrackEnd track_azimuth(const TrackModel& m, const ParticleState& s0, const Track
     }
     th += lo;
     y = inside;
-  };
-
-  while (th < th_end - 1e-13) {
-    double node = node0 + dnode * (std::floor((th - node0) / dnode + 1e-9) + 1);
-    // A grid node within rounding of the end is the end (else the run would stop a hair
-    // short and miss an element on the last azimuth).
-    double stop = node > th_end - 1e-9 ? th_end : node;
-    int which = -1;
-    for (size_t i = 0; i < events.size(); ++i) {
-      Event& e = events[i];
-      if (e.next - th < 4 * dnode) {  // close: refresh with the current radius
-        const double c = crossing_of(m, e, y[0]);
-        if (!std::isnan(c)) e.next = nearest(c, e.next);
-      }
-      // An element exactly at the last azimuth (a probe at the injection azimuth after whole
-      // turns) is crossed within the run: allow rounding of the unwrapped azimuths.
-      const bool at_end = stop >= th_end && e.next <= th_end + 1e-9;
-      if (e.next < stop || at_end) {
-        stop = e.next;
-        which = static_cast<int>(i);
-      }
-    }
+  }
+  /// After a step of h that left the map (y untouched): the loss.
+  void left_map(double h) {
+    to_edge(h);
+    lose("left the field map");
+  }
+  /// Steps to `stop` (when ahead) with the reference field; false (and lost) if it left the map.
+  bool step_to(double stop) {
     if (stop > th && !step_az(f, th, stop - th, y)) {
-      to_edge(stop - th);
-      lose("left the field map");
-      break;
+      left_map(stop - th);
+      return false;
     }
     th = std::max(th, stop);
+    record_path();
+    return true;
+  }
+  void record_path() {
     if (path) path->push_back({th * 180 / kPi, y[0] * 1e3, y[2] * 1e3, y[1] * 1e3, y[4] * 1e9, energy()});
-    if (which < 0) continue;
+  }
+
+  /// Lands exactly on event `which`'s line (its azimuth depends on r, so iteratively) and acts:
+  /// a gap kicks, a probe records. False when the particle was lost.
+  bool land_and_act(int which) {
     Event& e = events[static_cast<size_t>(which)];
-    // Land exactly on the element's line: its azimuth depends on r, so iterate.
-    bool ok = true;
     for (int it = 0; it < 8; ++it) {
       const double c = crossing_of(m, e, y[0]);
       if (std::isnan(c)) break;
       const double d = nearest(c, th) - th;
       if (std::fabs(d) < 1e-14) break;
       if (!step_az(f, th, d, y)) {
-        to_edge(d);
-        ok = false;
-        break;
+        left_map(d);
+        return false;
       }
       th += d;
-    }
-    if (!ok) {
-      lose("left the field map");
-      break;
     }
     const double r = y[0], cth = std::cos(th), sth = std::sin(th);
     ++e.count;
@@ -214,17 +249,17 @@ TrackEnd track_azimuth(const TrackModel& m, const ParticleState& s0, const Track
       kr.gap = e.index;
       kr.turn = e.count;
       kr.theta_deg = wrap_deg(th);
-      kr.kick = m.gaps[e.index].kick(r * cth, r * sth, y[4], mass, m.charge_e, st.gap_physics, px, py, pz);
+      kr.kick = m.gaps[e.index].kick(r * cth, r * sth, y[4], m.mass_MeV, m.charge_e, st.gap_physics, px, py, pz);
       if (kr.kick.stopped) {
         if (kicks) kicks->push_back(kr);
         lose("stopped by gap '" + m.gaps[e.index].name() + "'");
-        break;
+        return false;
       }
       if (kr.kick.active) {
         P = std::sqrt(px * px + py * py + pz * pz);
         y[1] = (px * cth + py * sth) / P;
         y[3] = pz / P;
-        set_momentum(f);
+        set_momentum();
       }
       if (kicks) kicks->push_back(kr);
     } else {
@@ -239,18 +274,188 @@ TrackEnd track_azimuth(const TrackModel& m, const ParticleState& s0, const Track
         tr.t_ns = y[4] * 1e9;
         tr.energy_MeV = energy();
         tr.phase_deg = m.rf_MHz > 0 ? wrap_deg(kTwoPi * m.rf_MHz * 1e6 * y[4]) : kNaN;
-        turns.push_back(tr);
+        turns->push_back(tr);
       }
     }
     e.next = th + kTwoPi;  // refreshed from r when it comes close
+    return true;
   }
-  if (!end.lost) end.status = "turn limit";
-  end.turns = (th - th0) / kTwoPi;
-  end.energy_MeV = energy();
-  end.r_mm = y[0] * 1e3;
-  end.theta_deg = wrap_deg(th);
-  end.t_ns = y[4] * 1e9;
-  return end;
+
+  /// Handles every event before `stop`: steps to it, lands and acts. False when lost.
+  bool events_before(double stop) {
+    for (;;) {
+      double s = stop;
+      const int which = next_event(s);
+      if (which < 0) return true;
+      if (!step_to(s) || !land_and_act(which)) return false;
+    }
+  }
+
+  TrackEnd finish() {
+    if (!end.lost) end.status = "turn limit";
+    end.turns = (th - th0) / kTwoPi;
+    end.energy_MeV = energy();
+    end.r_mm = y[0] * 1e3;
+    end.theta_deg = wrap_deg(th);
+    end.t_ns = y[4] * 1e9;
+    return end;
+  }
+};
+
+/// Where each stage of a grid step of `cells` whole cells samples: the cell offset from the
+/// step's first cell and the slot of its sub-cell offset in the row table.
+struct StageCells {
+  int dj[kStages];
+  int slot[kStages];
+  std::vector<double> v;  // the table's offsets
+};
+
+StageCells stage_cells(int cells) {
+  StageCells s;
+  for (int st = 0; st < kStages; ++st) {
+    const double pos = kC[st] * cells;
+    double whole = std::floor(pos + 1e-12);
+    double v = pos - whole;
+    if (v < 1e-12) v = 0;
+    s.dj[st] = static_cast<int>(whole);
+    auto it = std::find(s.v.begin(), s.v.end(), v);
+    s.slot[st] = static_cast<int>(it - s.v.begin());
+    if (it == s.v.end()) s.v.push_back(v);
+  }
+  return s;
+}
+
+/// One grid step of h from the node th (in cell j0) for the lanes L[0..n), main field from the
+/// row table; ok[l] false for a lane a stage of which left the map or lost its azimuthal
+/// momentum (its state untouched). The arithmetic is step_az's, lane by lane.
+void group_step(AzParticle* const* L, int n, double th, double h, int j0, const StageCells& sc,
+                const FieldRowTable& tab, bool* ok) {
+  const TrackModel& m = L[0]->m;
+  const bool rest = !m.main_field_only();
+  const int nt = tab.ntheta;
+  double k[kStages][5][kMaxLanes];
+  for (int l = 0; l < n; ++l) ok[l] = true;
+  for (int st = 0; st < kStages; ++st) {
+    const double ths = th + kC[st] * h;
+    int j = (j0 + sc.dj[st]) % nt;
+    const int slot = sc.slot[st];
+    for (int l = 0; l < n; ++l) {
+      if (!ok[l]) continue;
+      const AzState& y = L[l]->y;
+      double t[5];
+      for (int i = 0; i < 5; ++i) {
+        double acc = y[i];
+        for (int q = 0; q < st; ++q) acc += h * kA[st][q] * k[q][i][l];
+        t[i] = acc;
+      }
+      FieldSample f;
+      AzimuthDerivs d;
+      if (!m.map.sample_row(tab, t[0], j, slot, f)) {
+        ok[l] = false;
+        continue;
+      }
+      if (rest) m.add_to_main(t[0], ths, f);
+      if (!azimuth_eom(t[0], t[1], t[2], t[3], f, L[l]->f.inv_brho, L[l]->f.inv_v, d)) {
+        ok[l] = false;
+        continue;
+      }
+      k[st][0][l] = d.dr;
+      k[st][1][l] = d.dx;
+      k[st][2][l] = d.dz;
+      k[st][3][l] = d.dxz;
+      k[st][4][l] = d.dt;
+    }
+  }
+  for (int l = 0; l < n; ++l) {
+    if (!ok[l]) continue;
+    AzState& y = L[l]->y;
+    for (int i = 0; i < 5; ++i) {
+      double acc = 0;
+      for (int st = 0; st < kStages; ++st) acc += kB[st] * k[st][i][l];
+      y[i] += h * acc;
+    }
+  }
+}
+
+}  // namespace
+
+TrackEnd track_azimuth(const TrackModel& m, const ParticleState& s0, const TrackSettings& st,
+                       std::vector<TurnRecord>& turns, std::vector<KickRecord>* kicks,
+                       std::vector<PathPoint>* path) {
+  AzParticle p(m, s0, st, &turns, kicks, path);
+  while (p.th < p.th_end - 1e-13) {
+    double stop = p.node_stop(p.th);
+    const int which = p.next_event(stop);
+    if (!p.step_to(stop)) break;
+    if (which >= 0 && !p.land_and_act(which)) break;
+  }
+  return p.finish();
+}
+
+void track_azimuth_group(const TrackModel& m, const ParticleState* s0, size_t n, const TrackSettings& st,
+                         GroupOutput* out) {
+  if (n == 0) return;
+  if (n > static_cast<size_t>(kMaxLanes)) {
+    for (size_t b = 0; b < n; b += kMaxLanes)
+      track_azimuth_group(m, s0 + b, std::min<size_t>(kMaxLanes, n - b), st, out + b);
+    return;
+  }
+  std::vector<std::unique_ptr<AzParticle>> lane;
+  for (size_t l = 0; l < n; ++l)
+    lane.push_back(std::make_unique<AzParticle>(m, s0[l], st, out[l].turns, out[l].kicks, out[l].path));
+  // Lanes go through the same grid steps only from one azimuth; otherwise one group each.
+  for (size_t l = 1; l < n; ++l)
+    if (lane[l]->th != lane[0]->th) {
+      for (size_t q = 0; q < n; ++q) track_azimuth_group(m, s0 + q, 1, st, out + q);
+      return;
+    }
+  const PolarGrid& g = m.map.grid();
+  const double cell = g.dtheta_rad(), dnode = lane[0]->dnode, node0 = lane[0]->node0;
+  const double cells = dnode / cell;
+  // The row table serves steps of whole cells of the spline map (OPAL's bilinear map and
+  // fractions of a cell sample the reference way).
+  std::shared_ptr<const FieldRowTable> tab;
+  StageCells sc{};
+  if (!m.opal_map && cells > 0.5 && std::fabs(cells - std::round(cells)) < 1e-9) {
+    sc = stage_cells(static_cast<int>(std::round(cells)));
+    tab = m.map.row_table(sc.v);
+  }
+  const int nt = g.ntheta;
+  AzParticle* group[kMaxLanes];
+  bool ok[kMaxLanes];
+  double th = lane[0]->th;
+  const double th_end = lane[0]->th_end;
+  while (th < th_end - 1e-13) {
+    const double stop = lane[0]->node_stop(th);
+    // A whole grid step from a node: the row table's azimuths.
+    const bool grid_step = tab && std::fabs(stop - th - dnode) < 1e-9 * dnode;
+    int ng = 0;
+    for (auto& p : lane) {
+      if (!p->running()) continue;
+      if (!p->events_before(stop)) continue;
+      if (grid_step && p->th == th)
+        group[ng++] = p.get();
+      else if (stop > p->th)
+        p->step_to(stop);  // a partial step (after an element, or to the end); a loss ends the lane
+    }
+    if (ng > 0) {
+      long long kk = std::llround((th - node0) / cell);
+      int j0 = static_cast<int>(kk % nt);
+      if (j0 < 0) j0 += nt;
+      group_step(group, ng, th, stop - th, j0, sc, *tab, ok);
+      for (int l = 0; l < ng; ++l) {
+        AzParticle& p = *group[l];
+        if (!ok[l]) {
+          p.left_map(stop - th);
+          continue;
+        }
+        p.th = stop;
+        p.record_path();
+      }
+    }
+    th = stop;
+  }
+  for (size_t l = 0; l < n; ++l) *out[l].end = lane[l]->finish();
 }
 
 }  // namespace turnfit::detail

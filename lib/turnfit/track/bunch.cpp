@@ -346,30 +346,39 @@ CentroidTurns centroid_turns(const TrackModel& model, const ParticleState& refer
   // Each node's crossings as [probe][turn - 1] (NaN radius: not crossed).
   std::vector<std::vector<std::vector<TurnRecord>>> hit(n, std::vector<std::vector<TurnRecord>>(model.probes.size()));
   std::vector<unsigned char> started(n, 0);
-  std::exception_ptr ref_error;
-  parallel_for(n + 1, threads, [&](size_t i, unsigned) {
-    if (i == n) {  // the reference particle: its errors are the caller's
-      try {
-        out.end = track_particle(model, reference, settings, out.reference);
-      } catch (...) {
-        ref_error = std::current_exception();
-      }
-      return;
-    }
-    ParticleState s0;
+  // The particles: the reference first, then every node that can start (a spread that leaves
+  // no energy crosses nowhere). They are tracked in one group per thread (track_particles); a
+  // particle's records do not depend on its group.
+  std::vector<ParticleState> starts{reference};
+  std::vector<size_t> node_of{n};  // n: the reference
+  for (size_t i = 0; i < n; ++i) {
     try {
-      s0 = offset_state(inj, mass_MeV, model.rf_MHz, nodes[i].offset);
+      starts.push_back(offset_state(inj, mass_MeV, model.rf_MHz, nodes[i].offset));
+      node_of.push_back(i);
+      started[i] = 1;
     } catch (const Error&) {
-      return;  // a spread that leaves no energy: this node crosses nowhere
     }
-    std::vector<TurnRecord> turns;
+  }
+  const size_t np = starts.size();
+  const size_t groups = std::max<size_t>(1, std::min<size_t>(std::max(1u, threads), np));
+  std::vector<std::vector<TurnRecord>> turns(np);
+  std::vector<TrackEnd> ends(np);
+  std::vector<std::exception_ptr> error(groups);
+  parallel_for(groups, threads, [&](size_t g, unsigned) {
+    const size_t first = g * np / groups, last = (g + 1) * np / groups;
     try {
-      track_particle(model, s0, settings, turns);
-    } catch (const Error&) {
-      return;
+      track_particles(model, starts.data() + first, last - first, settings, turns.data() + first, ends.data() + first);
+    } catch (...) {
+      error[g] = std::current_exception();
     }
-    started[i] = 1;
-    for (const auto& t : turns) {
+  });
+  for (const auto& e : error)
+    if (e) std::rethrow_exception(e);
+  out.reference = std::move(turns[0]);
+  out.end = ends[0];
+  for (size_t q = 1; q < np; ++q) {
+    const size_t i = node_of[q];
+    for (const auto& t : turns[q]) {
       auto& v = hit[i][static_cast<size_t>(t.probe)];
       const auto k = static_cast<size_t>(t.turn - 1);
       if (v.size() <= k) {
@@ -379,8 +388,7 @@ CentroidTurns centroid_turns(const TrackModel& model, const ParticleState& refer
       }
       v[k] = t;
     }
-  });
-  if (ref_error) std::rethrow_exception(ref_error);
+  }
   out.centre = out.reference;
   out.known.assign(out.reference.size(), 0);
   for (size_t c = 0; c < out.reference.size(); ++c) {
@@ -422,15 +430,23 @@ BunchResult track_bunch(const TrackModel& model, const std::vector<ParticleState
   const unsigned nt = std::max(1u, std::min<unsigned>(threads, static_cast<unsigned>(std::max<size_t>(nchunks, 1))));
   std::vector<std::vector<ProbeHistogram>> hists(nt, empty_histograms(model));  // per worker
   std::atomic<size_t> done{0};
-  std::vector<std::vector<TurnRecord>> scratch(nt);  // per worker
+  // Per worker: one record list and end per particle of a chunk.
+  std::vector<std::vector<std::vector<TurnRecord>>> scratch(nt, std::vector<std::vector<TurnRecord>>(kChunk));
+  std::vector<std::vector<TrackEnd>> end_scratch(nt, std::vector<TrackEnd>(kChunk));
   parallel_for(nchunks, nt, [&](size_t c, unsigned w) {
-    std::vector<TurnRecord>& turns = scratch[w];
+    std::vector<std::vector<TurnRecord>>& turns = scratch[w];
     Partial& part = parts[c];
     part.acc.resize(model.probes.size());
     const size_t first = c * kChunk, last = std::min(n, first + kChunk);
+    // The chunk's particles stepped together (track_particles); each one's records are what
+    // it alone would give, so the sums below do not depend on the grouping or the threads.
+    std::vector<TurnRecord>* lane_turns = turns.data();
+    TrackEnd* ends = end_scratch[w].data();
+    for (size_t i = first; i < last; ++i) lane_turns[i - first].clear();
+    track_particles(model, starts.data() + first, last - first, settings, lane_turns, ends);
     for (size_t i = first; i < last; ++i) {
-      turns.clear();
-      TrackEnd end = track_particle(model, starts[i], settings, turns);
+      const std::vector<TurnRecord>& turns = lane_turns[i - first];
+      TrackEnd end = std::move(ends[i - first]);
       part.turns += end.turns;
       for (const auto& tr : turns) {
         auto& row = part.acc[static_cast<size_t>(tr.probe)];

@@ -34,6 +34,25 @@ TrackEnd track_azimuth(const TrackModel& m, const ParticleState& s0, const Track
                        std::vector<TurnRecord>& turns, std::vector<KickRecord>* kicks,
                        std::vector<PathPoint>* path);
 
+/// The most particles the group stepper takes through a step together.
+constexpr int kMaxLanes = 16;
+
+/// Where the group stepper puts one particle's records (kicks and path optional).
+struct GroupOutput {
+  std::vector<TurnRecord>* turns = nullptr;
+  std::vector<KickRecord>* kicks = nullptr;
+  std::vector<PathPoint>* path = nullptr;
+  TrackEnd* end = nullptr;
+};
+
+/// The same integrator for n particles stepped together in groups of up to kMaxLanes (one
+/// group of one is the single-particle path): particles that start at one azimuth share every
+/// grid step, and the main field comes from the map's row table at the stage azimuths. Each
+/// particle's records and end are what track_azimuth gives to rounding (the same arithmetic,
+/// the field's rows evaluated before instead of during the step).
+void track_azimuth_group(const TrackModel& m, const ParticleState* s0, size_t n, const TrackSettings& st,
+                         GroupOutput* out);
+
 /// RK4 in time with a fixed number of steps per turn (OPAL-cycl's scheme).
 TrackEnd track_time(const TrackModel& m, const ParticleState& s0, const TrackSettings& st,
                     std::vector<TurnRecord>& turns, std::vector<KickRecord>* kicks,

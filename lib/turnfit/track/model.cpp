@@ -116,12 +116,7 @@ void fit_sector_centre(TrackModel& t) {
 bool TrackModel::field(double r_m, double th, FieldSample& out) const {
   // One branch per sample keeps the spline path free of indirect calls.
   if (!(opal_map ? opal_map->sample(r_m, th, out) : map.sample(r_m, th, out))) return false;
-  if (effects.active) return field_with_effects(r_m, th, out);
-  if (coils.empty()) return true;
-  const FieldSample main = out;
-  double dc = 0;
-  const double centre = sector_windows ? sector_centre(r_m, dc) : 0.0;
-  add_coils(r_m, th, main, centre, out);
+  add_to_main(r_m, th, out);
   return true;
 }
 

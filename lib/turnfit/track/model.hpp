@@ -102,6 +102,22 @@ struct TrackModel {
   /// Total bending field b (> 0 bends a positive particle moving with increasing azimuth;
   /// physical Bz = -b) and its derivatives; false outside the field map.
   bool field(double r_m, double theta_rad, FieldSample& out) const;
+  /// field() given the main field's sample at (r, theta) in `out` (as `map` or `opal_map`
+  /// gives it): adds the effects and the coils. The fast steppers sample the main field their
+  /// own way (FieldRowTable) and finish here.
+  void add_to_main(double r_m, double theta_rad, FieldSample& out) const {
+    if (effects.active) {
+      field_with_effects(r_m, theta_rad, out);
+      return;
+    }
+    if (coils.empty()) return;
+    const FieldSample main = out;
+    double dc = 0;
+    const double centre = sector_windows ? sector_centre(r_m, dc) : 0.0;
+    add_coils(r_m, theta_rad, main, centre, out);
+  }
+  /// Whether field() is the main field alone (no effects, no coils).
+  bool main_field_only() const { return !effects.active && coils.empty(); }
 
  private:
   bool field_with_effects(double r_m, double theta_rad, FieldSample& out) const;

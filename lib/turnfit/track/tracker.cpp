@@ -75,7 +75,22 @@ TrackEnd track_particle(const TrackModel& model, const ParticleState& start, con
                         std::vector<TurnRecord>& turns, std::vector<KickRecord>* kicks,
                         std::vector<PathPoint>* path) {
   if (settings.integrator == "rk4") return detail::track_time(model, start, settings, turns, kicks, path);
-  return detail::track_azimuth(model, start, settings, turns, kicks, path);
+  if (settings.reference_stepper) return detail::track_azimuth(model, start, settings, turns, kicks, path);
+  TrackEnd end;
+  detail::GroupOutput out{&turns, kicks, path, &end};
+  detail::track_azimuth_group(model, &start, 1, settings, &out);
+  return end;
+}
+
+void track_particles(const TrackModel& model, const ParticleState* starts, size_t n, const TrackSettings& settings,
+                     std::vector<TurnRecord>* turns, TrackEnd* ends) {
+  if (settings.integrator == "rk4" || settings.reference_stepper) {
+    for (size_t i = 0; i < n; ++i) ends[i] = track_particle(model, starts[i], settings, turns[i]);
+    return;
+  }
+  std::vector<detail::GroupOutput> out(n);
+  for (size_t i = 0; i < n; ++i) out[i] = {&turns[i], nullptr, nullptr, &ends[i]};
+  detail::track_azimuth_group(model, starts, n, settings, out.data());
 }
 
 }  // namespace turnfit

@@ -78,6 +78,11 @@ struct TrackSettings {
   /// the step after a kick). The rest of OPAL's numerics are ModelOptions::opal_map,
   /// GapPhysics::opal and injection_state(..., opal_single_precision).
   bool opal_compat = false;
+  /// azimuth only: the reference stepper, one particle with every field sample through
+  /// TrackModel::field (turnfit 0.x's code before the fast paths of issue 17), instead of the
+  /// group stepper with the map's row table. The two agree to rounding (tests/unit/test_fast_track.cpp);
+  /// tests and benchmarks use this one as their reference.
+  bool reference_stepper = false;
 };
 
 /// Names and one-line descriptions of the integrators.
@@ -110,5 +115,12 @@ double kinetic_energy(const ParticleState& s, double mass_MeV);
 TrackEnd track_particle(const TrackModel& model, const ParticleState& start, const TrackSettings& settings,
                         std::vector<TurnRecord>& turns, std::vector<KickRecord>* kicks = nullptr,
                         std::vector<PathPoint>* path = nullptr);
+
+/// Tracks n particles (ends[i] and turns[i] as track_particle gives them for starts[i]; turns are
+/// appended). The azimuth integrator steps particles that start at one azimuth together in
+/// groups, which is several times faster per particle than one by one; particle i's records
+/// do not depend on which others share its group.
+void track_particles(const TrackModel& model, const ParticleState* starts, size_t n, const TrackSettings& settings,
+                     std::vector<TurnRecord>* turns, TrackEnd* ends);
 
 }  // namespace turnfit

@@ -1,0 +1,148 @@
+// bench_speed (issue 17): tracking speed against the reference stepper in the same process.
+//  1. One 182-turn single-particle track of ring8 (nominal), ring8's truth (18 trim coils and
+//     its field effects) and the PSI Ring example: the reference stepper (TrackSettings::
+//     reference_stepper, the code before issue 17) against the default, median of repeats, and
+//     the largest difference of any recorded crossing.
+//  2. Bunches of each machine on one thread: a loop of reference single tracks against
+//     track_particles (groups stepped together), in particle-turns per second, with the
+//     largest difference of a crossing against the single-particle default path.
+//
+// Usage: bench_speed [--repeat N] [--particles N]
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <cstdlib>
+#include <cstring>
+#include <string>
+#include <sys/stat.h>
+#include <vector>
+
+#include "turnfit/machine/machine.hpp"
+#include "turnfit/track/bunch.hpp"
+#include "turnfit/track/model.hpp"
+#include "turnfit/track/tracker.hpp"
+
+using namespace turnfit;
+using Clock = std::chrono::steady_clock;
+
+namespace {
+
+double seconds_since(Clock::time_point a) { return std::chrono::duration<double>(Clock::now() - a).count(); }
+
+double median(std::vector<double> v) {
+  std::sort(v.begin(), v.end());
+  const size_t n = v.size();
+  return n % 2 ? v[n / 2] : 0.5 * (v[n / 2 - 1] + v[n / 2]);
+}
+
+/// Largest |dr| between two record lists of the same crossings (inf if they differ in count).
+double worst_dr(const std::vector<TurnRecord>& a, const std::vector<TurnRecord>& b) {
+  if (a.size() != b.size()) return INFINITY;
+  double w = 0;
+  for (size_t i = 0; i < a.size(); ++i) {
+    if (a[i].probe != b[i].probe || a[i].turn != b[i].turn) return INFINITY;
+    w = std::max(w, std::fabs(a[i].r_mm - b[i].r_mm));
+  }
+  return w;
+}
+
+struct Case {
+  std::string name, path;
+};
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  int repeat = 15;
+  size_t particles = 64;
+  for (int i = 1; i < argc; ++i) {
+    if (!std::strcmp(argv[i], "--repeat") && i + 1 < argc) repeat = std::max(1, std::atoi(argv[++i]));
+    else if (!std::strcmp(argv[i], "--particles") && i + 1 < argc) particles = std::max(1, std::atoi(argv[++i]));
+    else {
+      std::fprintf(stderr, "usage: bench_speed [--repeat N] [--particles N]\n");
+      return 64;
+    }
+  }
+  const std::string share = std::string(TURNFIT_SOURCE_SHARE) + "/ring8/";
+  std::vector<Case> cases = {{"ring8 nominal", share + "machine.json"}, {"ring8 truth", share + "truth-machine.json"}};
+  struct stat st {};
+  if (::stat((std::string(TURNFIT_SHARED_DIR) + "/data/psi-ring/bfield.dat").c_str(), &st) == 0)
+    cases.push_back({"PSI Ring aeo", std::string(TURNFIT_SOURCE_SHARE) + "/../../examples/psi-ring/aeo.json"});
+  else
+    std::printf("(PSI Ring example skipped: shared data not found at %s)\n", TURNFIT_SHARED_DIR);
+
+  std::printf("== Single-particle tracks, 182 turns, one thread, median of %d\n", repeat);
+  std::printf("%-14s %14s %12s %8s %16s\n", "machine", "reference [ms]", "default [ms]", "ratio", "max |dr| [mm]");
+  struct Loaded {
+    Machine m;
+    TrackModel model;
+    ParticleState s0;
+    TrackSettings ts;
+  };
+  std::vector<Loaded> loaded;
+  for (const auto& c : cases) {
+    Loaded L;
+    L.m = load_machine(c.path);
+    L.model = make_track_model(L.m);
+    L.s0 = injection_state(effective_injection(L.m), L.m.particle.mass_MeV);
+    L.ts = machine_track_settings(L.m);
+    L.ts.turns = 182;
+    TrackSettings ref = L.ts;
+    ref.reference_stepper = true;
+    std::vector<double> t_ref, t_fast;
+    std::vector<TurnRecord> a, b;
+    for (int k = 0; k < repeat; ++k) {
+      a.clear();
+      auto t0 = Clock::now();
+      track_particle(L.model, L.s0, ref, a);
+      t_ref.push_back(seconds_since(t0) * 1e3);
+      b.clear();
+      t0 = Clock::now();
+      track_particle(L.model, L.s0, L.ts, b);
+      t_fast.push_back(seconds_since(t0) * 1e3);
+    }
+    std::printf("%-14s %14.2f %12.2f %7.2fx %16.2e\n", c.name.c_str(), median(t_ref), median(t_fast),
+                median(t_ref) / median(t_fast), worst_dr(a, b));
+    loaded.push_back(std::move(L));
+  }
+
+  std::printf("\n== Bunches of %zu particles, 182 turns, one thread (ring8's bunch block; PSI: 1 mm mrad, "
+              "0.05 MeV, 1 deg)\n", particles);
+  std::printf("%-14s %22s %22s %8s %24s\n", "machine", "reference [pt/s]", "default [pt/s]", "ratio",
+              "max |dr| vs single [mm]");
+  for (size_t c = 0; c < loaded.size(); ++c) {
+    Loaded& L = loaded[c];
+    Bunch b = L.m.bunch ? *L.m.bunch : Bunch{};
+    if (!L.m.bunch) {
+      b.emittance_r_mm_mrad = 1;
+      b.beta_r_m = 2;
+      b.sigma_E_MeV = 0.05;
+      b.sigma_phase_deg = 1;
+    }
+    const Injection inj = effective_injection(L.m);
+    std::vector<ParticleState> starts;
+    for (const auto& o : gaussian_bunch(b, particles, 1))
+      starts.push_back(offset_state(inj, L.m.particle.mass_MeV, L.model.rf_MHz, o));
+    TrackSettings ref = L.ts;
+    ref.reference_stepper = true;
+    std::vector<std::vector<TurnRecord>> tr(particles), tf(particles), ts(particles);
+    std::vector<TrackEnd> er(particles), ef(particles);
+    auto t0 = Clock::now();
+    double pt = 0;
+    for (size_t i = 0; i < particles; ++i) pt += (er[i] = track_particle(L.model, starts[i], ref, tr[i])).turns;
+    const double t_ref = seconds_since(t0);
+    t0 = Clock::now();
+    track_particles(L.model, starts.data(), particles, L.ts, tf.data(), ef.data());
+    const double t_fast = seconds_since(t0);
+    double pf = 0, worst = 0;
+    for (size_t i = 0; i < particles; ++i) {
+      pf += ef[i].turns;
+      track_particle(L.model, starts[i], L.ts, ts[i]);
+      worst = std::max(worst, worst_dr(tf[i], ts[i]));
+    }
+    std::printf("%-14s %22.0f %22.0f %7.2fx %24.2e\n", cases[c].name.c_str(), pt / t_ref, pf / t_fast,
+                (pf / t_fast) / (pt / t_ref), worst);
+  }
+  return 0;
+}
