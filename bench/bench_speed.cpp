@@ -84,6 +84,8 @@ int main(int argc, char** argv) {
   for (const auto& c : cases) {
     Loaded L;
     L.m = load_machine(c.path);
+    // ring8's truth as synth runs it: with the trim coils of truth-dvars.json.
+    if (c.name == "ring8 truth") apply_dvars_file(L.m, share + "truth-dvars.json");
     L.model = make_track_model(L.m);
     L.s0 = injection_state(effective_injection(L.m), L.m.particle.mass_MeV);
     L.ts = machine_track_settings(L.m);

@@ -281,16 +281,6 @@ struct AzParticle {
     return true;
   }
 
-  /// Handles every event before `stop`: steps to it, lands and acts. False when lost.
-  bool events_before(double stop) {
-    for (;;) {
-      double s = stop;
-      const int which = next_event(s);
-      if (which < 0) return true;
-      if (!step_to(s) || !land_and_act(which)) return false;
-    }
-  }
-
   TrackEnd finish() {
     if (!end.lost) end.status = "turn limit";
     end.turns = (th - th0) / kTwoPi;
@@ -328,8 +318,39 @@ StageCells stage_cells(int cells) {
 /// One grid step of h from the node th (in cell j0) for the lanes L[0..n), main field from the
 /// row table; ok[l] false for a lane a stage of which left the map or lost its azimuthal
 /// momentum (its state untouched). The arithmetic is step_az's, lane by lane.
+/// The azimuth's part of the field (TrackModel::azimuth_terms) at the stage azimuths of each
+/// grid step of a turn, computed on first use: every turn repeats them.
+struct TermCache {
+  bool used = false;
+  long long steps = 0;  // grid steps per turn
+  double node0 = 0, dnode = 0;
+  std::vector<TrackModel::AzimuthTerms> terms;
+  std::vector<char> known;
+  TermCache(const TrackModel& m, double node0_, double dnode_) : node0(node0_), dnode(dnode_) {
+    if (!m.effects.active || m.effects.harmonics.empty()) return;
+    const double per_turn = kTwoPi / dnode;
+    steps = std::llround(per_turn);
+    if (steps < 1 || std::fabs(per_turn - static_cast<double>(steps)) > 1e-9 || steps > 1000000) return;
+    used = true;
+    terms.resize(static_cast<size_t>(steps) * kStages);
+    known.assign(terms.size(), 0);
+  }
+  /// The terms of stage st of the grid step from node th; nullptr without a cache.
+  const TrackModel::AzimuthTerms* at(const TrackModel& m, double th, double h, int st) {
+    if (!used) return nullptr;
+    long long k = std::llround((th - node0) / dnode) % steps;
+    if (k < 0) k += steps;
+    const size_t i = static_cast<size_t>(k) * kStages + static_cast<size_t>(st);
+    if (!known[i]) {
+      m.azimuth_terms(th + kC[st] * h, terms[i]);
+      known[i] = 1;
+    }
+    return &terms[i];
+  }
+};
+
 void group_step(AzParticle* const* L, int n, double th, double h, int j0, const StageCells& sc,
-                const FieldRowTable& tab, bool* ok) {
+                const FieldRowTable& tab, TermCache& cache, bool* ok) {
   const TrackModel& m = L[0]->m;
   const bool rest = !m.main_field_only();
   const int nt = tab.ntheta;
@@ -339,6 +360,7 @@ void group_step(AzParticle* const* L, int n, double th, double h, int j0, const 
     const double ths = th + kC[st] * h;
     int j = (j0 + sc.dj[st]) % nt;
     const int slot = sc.slot[st];
+    const TrackModel::AzimuthTerms* terms = rest ? cache.at(m, th, h, st) : nullptr;
     for (int l = 0; l < n; ++l) {
       if (!ok[l]) continue;
       const AzState& y = L[l]->y;
@@ -354,7 +376,7 @@ void group_step(AzParticle* const* L, int n, double th, double h, int j0, const 
         ok[l] = false;
         continue;
       }
-      if (rest) m.add_to_main(t[0], ths, f);
+      if (rest) m.add_to_main(t[0], ths, f, terms);
       if (!azimuth_eom(t[0], t[1], t[2], t[3], f, L[l]->f.inv_brho, L[l]->f.inv_v, d)) {
         ok[l] = false;
         continue;
@@ -421,6 +443,7 @@ void track_azimuth_group(const TrackModel& m, const ParticleState* s0, size_t n,
     tab = m.map.row_table(sc.v);
   }
   const int nt = g.ntheta;
+  TermCache cache(m, node0, dnode);
   AzParticle* group[kMaxLanes];
   bool ok[kMaxLanes];
   double th = lane[0]->th;
@@ -430,19 +453,27 @@ void track_azimuth_group(const TrackModel& m, const ParticleState* s0, size_t n,
     // A whole grid step from a node: the row table's azimuths.
     const bool grid_step = tab && std::fabs(stop - th - dnode) < 1e-9 * dnode;
     int ng = 0;
+    // Each lane runs the reference's iterations (AzParticle::node_stop, next_event, a step,
+    // landing) up to this node; the whole grid step from the group's node, without an element
+    // in it, it takes with the group. A lane that landed within rounding of the node or past
+    // it goes on from there next time, as alone it would.
     for (auto& p : lane) {
-      if (!p->running()) continue;
-      if (!p->events_before(stop)) continue;
-      if (grid_step && p->th == th)
-        group[ng++] = p.get();
-      else if (stop > p->th)
-        p->step_to(stop);  // a partial step (after an element, or to the end); a loss ends the lane
+      while (p->running()) {
+        double s = p->node_stop(p->th);
+        if (s > stop) break;
+        const int which = p->next_event(s);
+        if (which < 0 && grid_step && p->th == th) {
+          group[ng++] = p.get();
+          break;
+        }
+        if (!p->step_to(s) || (which >= 0 && !p->land_and_act(which))) break;
+      }
     }
     if (ng > 0) {
       long long kk = std::llround((th - node0) / cell);
       int j0 = static_cast<int>(kk % nt);
       if (j0 < 0) j0 += nt;
-      group_step(group, ng, th, stop - th, j0, sc, *tab, ok);
+      group_step(group, ng, th, stop - th, j0, sc, *tab, cache, ok);
       for (int l = 0; l < ng; ++l) {
         AzParticle& p = *group[l];
         if (!ok[l]) {

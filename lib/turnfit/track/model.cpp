@@ -24,34 +24,34 @@ double FieldEffects::sector_factor(double th, double& dfactor) const {
   if (n == 0) return 1;
   // Sector k is centred on azimuth (k - 1) pitch (the trim coils' convention, trimcoil.cpp):
   // u is the azimuth from the centre of the sector j (0-based) that holds theta.
-  double a = std::fmod(th + 0.5 * pitch_rad, 2 * kPi);
-  if (a < 0) a += 2 * kPi;
-  const int j = std::min(static_cast<int>(a / pitch_rad), n - 1);
+  // (Multiplications by stored inverses and no integer modulo: this runs at every field
+  // sample of a machine with sector-strength effects, inside the step's dependency chain.)
+  double a = th + 0.5 * pitch_rad;
+  a -= 2 * kPi * std::floor(a * (1 / (2 * kPi)));  // in [0, 2 pi) (std::fmod is several times slower)
+  if (a >= 2 * kPi) a = 0;
+  const int j = std::min(static_cast<int>(a * inv_pitch_rad), n - 1);
   const double u = a - (j + 0.5) * pitch_rad;
   // Within half a switch width of the valley after sector j (u near +pitch/2) or before it
   // (u near -pitch/2) the factor blends the two magnets; elsewhere it is sector j's alone.
   const double h = half_transition_rad, half_pitch = 0.5 * pitch_rad;
-  const auto rel = [&](int k) { return sector_relative[static_cast<size_t>((k + n) % n)]; };
+  const auto rel = [&](int k) { return sector_relative[static_cast<size_t>(k < 0 ? k + n : k >= n ? k - n : k)]; };
   double lo, hi, x;
   if (u > half_pitch - h) {
     lo = rel(j);
     hi = rel(j + 1);
-    x = (u - half_pitch) / h;
+    x = (u - half_pitch) * inv_half_transition_rad;
   } else if (u < h - half_pitch) {
     lo = rel(j - 1);
     hi = rel(j);
-    x = (u + half_pitch) / h;
+    x = (u + half_pitch) * inv_half_transition_rad;
   } else {
     return 1 + rel(j);
   }
-  // Quintic smooth step S on [-1, 1] (0, 1/2, 1 at -1, 0, 1; first and second derivatives 0
-  // at the ends), so the field stays C2 in theta for the fifth-order integrator. Writing the
-  // factor as 1 + lo + (hi - lo) S keeps it exactly 1 + relative when neighbours are equal.
   if (x <= -1) return 1 + lo;
   if (x >= 1) return 1 + hi;
   const double t = 0.5 * (x + 1);
   const double S = t * t * t * (t * (6 * t - 15) + 10);
-  dfactor = (hi - lo) * 15 * t * t * (1 - t) * (1 - t) / h;
+  dfactor = (hi - lo) * 15 * t * t * (1 - t) * (1 - t) * inv_half_transition_rad;
   return 1 + lo + (hi - lo) * S;
 }
 
@@ -129,21 +129,45 @@ void TrackModel::add_coils(double r_m, double th, const FieldSample& main, doubl
   }
   if (!coil_sum.empty())
     coil_sum.add(r_m, main.bz_T, main.dbz_dr_T_m, main.dbz_dth_T, threshold_T, out.bz_T, out.dbz_dr_T_m, out.dbz_dth_T);
+  for (const auto& w : window_sums)
+    if (coils[w.window_of].in_azimuth(th, centre))
+      w.sum.add(r_m, main.bz_T, main.dbz_dr_T_m, main.dbz_dth_T, threshold_T, out.bz_T, out.dbz_dr_T_m, out.dbz_dth_T);
   for (size_t i : single_coils)
     coils[i].add(r_m, th, main.bz_T, main.dbz_dr_T_m, main.dbz_dth_T, threshold_T, out.bz_T, out.dbz_dr_T_m,
                  out.dbz_dth_T, centre);
 }
 
-void TrackModel::sum_coils(bool sum) {
+void TrackModel::sum_coils(bool sum, bool windows) {
   std::vector<char> taken(coils.size(), 0);
   coil_sum = sum ? TrimCoilSum(coils, map.grid().r_min_m(), map.grid().r_max_m(), taken) : TrimCoilSum();
+  window_sums.clear();
+  for (size_t i = 0; sum && windows && i < coils.size(); ++i) {
+    if (taken[i] || coils[i].coil().bmax_T == 0) continue;
+    std::vector<size_t> same{i};
+    for (size_t j = i + 1; j < coils.size(); ++j)
+      if (!taken[j] && coils[j].coil().bmax_T != 0 && coils[j].same_window(coils[i])) same.push_back(j);
+    if (same.size() < 2) continue;
+    TrimCoilSum w(coils, same, map.grid().r_min_m(), map.grid().r_max_m());
+    if (w.empty()) continue;
+    for (size_t j : same) taken[j] = 1;
+    window_sums.push_back({i, std::move(w)});
+  }
   single_coils.clear();
   for (size_t i = 0; i < coils.size(); ++i)  // a coil at bmax 0 adds nothing
     if (!taken[i] && coils[i].coil().bmax_T != 0) single_coils.push_back(i);
   summed_for_ = coils.size();
 }
 
-bool TrackModel::field_with_effects(double r_m, double th, FieldSample& out) const {
+void TrackModel::azimuth_terms(double th, AzimuthTerms& t) const {
+  for (size_t k = 0; k < effects.harmonics.size() && k < kAzimuthHarmonics; ++k) {
+    const auto& h = effects.harmonics[k];
+    const double arg = h.n * (th - h.phase_rad);
+    t.cos_h[k] = std::cos(arg);
+    t.sin_h[k] = std::sin(arg);
+  }
+}
+
+bool TrackModel::field_with_effects(double r_m, double th, FieldSample& out, const AzimuthTerms* terms) const {
   // A stronger sector magnet scales the map's field; the trim coils see the scaled field
   // (their threshold is on the main field), the harmonic error field comes on top of both.
   // The sector windows follow the magnets' centre line theta_c(r): the factor is a function of
@@ -159,14 +183,23 @@ bool TrackModel::field_with_effects(double r_m, double th, FieldSample& out) con
   }
   const FieldSample main = out;
   add_coils(r_m, th, main, centre, out);
-  for (const auto& h : effects.harmonics) {
+  for (size_t k = 0; k < effects.harmonics.size(); ++k) {
+    const auto& h = effects.harmonics[k];
     const double dr = r_m - h.r0_m;
     const double g = h.inv_width2 == 0 ? 1.0 : std::exp(-0.5 * dr * dr * h.inv_width2);
-    const double arg = h.n * (th - h.phase_rad);
-    const double b = h.amplitude_T * g * std::cos(arg);
+    double c, sn;
+    if (terms && k < kAzimuthHarmonics) {
+      c = terms->cos_h[k];
+      sn = terms->sin_h[k];
+    } else {
+      const double arg = h.n * (th - h.phase_rad);
+      c = std::cos(arg);
+      sn = std::sin(arg);
+    }
+    const double b = h.amplitude_T * g * c;
     out.bz_T += b;
     out.dbz_dr_T_m -= b * dr * h.inv_width2;
-    out.dbz_dth_T -= h.amplitude_T * g * h.n * std::sin(arg);
+    out.dbz_dth_T -= h.amplitude_T * g * h.n * sn;
   }
   return true;
 }
@@ -212,6 +245,8 @@ void apply_effects(TrackModel& t, const Effects& fx, const std::string& file, co
       t.effects.sector_relative[static_cast<size_t>(e.sector - 1)] = e.relative;
     }
     t.effects.half_transition_rad = 0.5 * transition;
+    t.effects.inv_half_transition_rad = 1 / t.effects.half_transition_rad;
+    t.effects.inv_pitch_rad = 1 / pitch;
   }
   for (const auto& e : fx.trimcoil_sectors) {
     for (int k : e.sectors) check_sector(k, effect_path(e.index, "sectors"));
@@ -365,7 +400,7 @@ TrackModel make_track_model(const Machine& m, const ModelOptions& opt, const Mod
   // A harmonic analysis of the whole map: only for models whose windows use it (an optimizer
   // builds a model per evaluation).
   if (t.sector_windows) fit_sector_centre(t);
-  t.sum_coils(opt.sum_coils && !opt.opal_map);
+  t.sum_coils(opt.sum_coils && !opt.opal_map, opt.sum_window_coils);
   return t;
 }
 

@@ -60,6 +60,7 @@ struct FieldEffects {
   std::vector<double> sector_relative;
   double pitch_rad = 0;            ///< 2 pi / sector count
   double half_transition_rad = 0;  ///< half width of the switch between neighbouring sectors
+  double inv_pitch_rad = 0, inv_half_transition_rad = 0;  ///< their inverses (set with them)
   /// Main-field factor 1 + sum_k relative_k w_k(theta) and its theta derivative; the windows w_k
   /// add up to 1 at every azimuth.
   double sector_factor(double theta_rad, double& dfactor_dth) const;
@@ -79,9 +80,18 @@ struct TrackModel {
   /// coil one by one otherwise (a model built by hand, or coils added later).
   TrimCoilSum coil_sum;
   std::vector<size_t> single_coils;
+  /// Coils that share a window (a sector list, a PHIMIN/PHIMAX range) summed into one table
+  /// each, with the index of one of them for the window test (ModelOptions::sum_window_coils).
+  struct WindowSum {
+    size_t window_of;
+    TrimCoilSum sum;
+  };
+  std::vector<WindowSum> window_sums;
   /// (Re)builds coil_sum and single_coils from `coils`: call it after changing a coil in place.
   /// With sum = false every coil stays single (OPAL's compatible model keeps its formulas).
-  void sum_coils(bool sum = true);
+  /// With `windows`, coils that share a window are summed as well (one table and one window
+  /// test per window instead of one per coil).
+  void sum_coils(bool sum = true, bool windows = true);
   std::vector<Gap> gaps;
   std::vector<ProbeLine> probes;
   double mass_MeV = 938.27208816;
@@ -105,9 +115,17 @@ struct TrackModel {
   /// field() given the main field's sample at (r, theta) in `out` (as `map` or `opal_map`
   /// gives it): adds the effects and the coils. The fast steppers sample the main field their
   /// own way (FieldRowTable) and finish here.
-  void add_to_main(double r_m, double theta_rad, FieldSample& out) const {
+  /// What add_to_main needs from the azimuth alone, for many samples at one azimuth: cos and
+  /// sin of n (theta - phase) of the first kAzimuthHarmonics field harmonics.
+  static constexpr size_t kAzimuthHarmonics = 4;
+  struct AzimuthTerms {
+    double cos_h[kAzimuthHarmonics], sin_h[kAzimuthHarmonics];
+  };
+  void azimuth_terms(double theta_rad, AzimuthTerms& t) const;
+  /// With `terms` (azimuth_terms of this theta), the azimuth's part is not computed again.
+  void add_to_main(double r_m, double theta_rad, FieldSample& out, const AzimuthTerms* terms = nullptr) const {
     if (effects.active) {
-      field_with_effects(r_m, theta_rad, out);
+      field_with_effects(r_m, theta_rad, out, terms);
       return;
     }
     if (coils.empty()) return;
@@ -120,7 +138,7 @@ struct TrackModel {
   bool main_field_only() const { return !effects.active && coils.empty(); }
 
  private:
-  bool field_with_effects(double r_m, double theta_rad, FieldSample& out) const;
+  bool field_with_effects(double r_m, double theta_rad, FieldSample& out, const AzimuthTerms* terms) const;
   void add_coils(double r_m, double theta_rad, const FieldSample& main, double sector_centre_rad,
                  FieldSample& out) const;
   size_t summed_for_ = static_cast<size_t>(-1);  // coils.size() when sum_coils() ran
@@ -139,6 +157,9 @@ struct ModelOptions {
   /// Sum the coils that act at every azimuth into one table (TrimCoilSum); off: one by one
   /// (for comparisons; the OPAL-compatible model never sums).
   bool sum_coils = true;
+  /// Also sum the coils that share a window (trim coils on some sectors only: ring8's truth puts
+  /// nine on the odd sectors); off: those stay one by one, as before issue 17.
+  bool sum_window_coils = true;
 };
 
 /// What make_track_model reads from disk, read once: an optimizer builds a model per design,

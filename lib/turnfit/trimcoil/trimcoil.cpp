@@ -311,7 +311,22 @@ TrimCoilSum::TrimCoilSum(const std::vector<TrimCoilField>& coils, double r_lo, d
     const TrimCoilField& c = coils[i];
     if (c.everywhere_ && c.coil_.bmax_T != 0 && c.kind_ != 3 && !c.lut_.empty()) use.push_back(i);
   }
-  if (use.size() < 2 || !(r_hi > r_lo)) return;
+  if (use.size() < 2) return;
+  build(coils, use, r_lo, r_hi);
+  if (empty()) return;
+  for (size_t i : use) taken[i] = 1;
+}
+
+TrimCoilSum::TrimCoilSum(const std::vector<TrimCoilField>& coils, const std::vector<size_t>& use, double r_lo,
+                         double r_hi) {
+  for (size_t i : use)
+    if (coils[i].kind_ == 3 || coils[i].lut_.empty()) return;  // only tabulated rational shapes
+  build(coils, use, r_lo, r_hi);
+}
+
+void TrimCoilSum::build(const std::vector<TrimCoilField>& coils, const std::vector<size_t>& use, double r_lo,
+                        double r_hi) {
+  if (use.empty() || !(r_hi > r_lo)) return;
   // Breaks: every table segment's ends (support edges, mirrored kinks), within [r_lo, r_hi].
   std::vector<double> cuts = {r_lo, r_hi};
   for (size_t i : use)
@@ -359,7 +374,6 @@ TrimCoilSum::TrimCoilSum(const std::vector<TrimCoilField>& coils, double r_lo, d
     pieces_.push_back(std::move(p));
   }
   if (pieces_.empty()) return;
-  for (size_t i : use) taken[i] = 1;
   ncoils_ = use.size();
   // Buckets of the finest piece's width (at most 4096) point at the first piece a radius can be in.
   lo_ = pieces_.front().r0;

@@ -52,6 +52,15 @@ class TrimCoilField {
   /// number of nodes (0: not tabulated, e.g. tables, which are already tables).
   size_t tabulate(double r_lo_m, double r_hi_m, double rel_tol = 1e-7);
 
+  /// Whether the coil's window (PHIMIN/PHIMAX, sector list) holds azimuth theta, sector 1's
+  /// centre line being at `sector_offset_rad` at this radius.
+  bool in_azimuth(double theta_rad, double sector_offset_rad) const;
+  /// Whether two coils have the same window (sums of such coils need one test).
+  bool same_window(const TrimCoilField& o) const {
+    return coil_.phimin_deg == o.coil_.phimin_deg && coil_.phimax_deg == o.coil_.phimax_deg &&
+           coil_.sectors == o.coil_.sectors && symmetry_ == o.symmetry_;
+  }
+
   /// The coil's name.
   const std::string& name() const { return coil_.name; }
   /// Whether it acts at every azimuth (no sector list, a full-circle window).
@@ -63,7 +72,6 @@ class TrimCoilField {
 
  private:
   friend class TrimCoilSum;
-  bool in_azimuth(double theta_rad, double sector_offset_rad) const;
   TrimCoil coil_;
   int symmetry_;
   int kind_;  // 0 bfield, 1 phase, 2 mirrored, 3 table
@@ -98,6 +106,9 @@ class TrimCoilSum {
   /// table (tabulate(); tables of type "table" and untabulated coils stay single), over
   /// [r_lo, r_hi] [m]. taken[i] is set for each coil summed. Empty when fewer than two qualify.
   TrimCoilSum(const std::vector<TrimCoilField>& coils, double r_lo_m, double r_hi_m, std::vector<char>& taken);
+  /// Sums the coils `use` (indices into `coils`) whatever their windows, which the caller tests
+  /// (they must share one); empty unless every one has a lookup table and a rational shape.
+  TrimCoilSum(const std::vector<TrimCoilField>& coils, const std::vector<size_t>& use, double r_lo_m, double r_hi_m);
   TrimCoilSum() = default;
 
   bool empty() const { return pieces_.empty(); }
@@ -118,6 +129,7 @@ class TrimCoilSum {
     double r0, r1, h, inv_h;
     std::vector<double> s, ds;
   };
+  void build(const std::vector<TrimCoilField>& coils, const std::vector<size_t>& use, double r_lo_m, double r_hi_m);
   std::vector<Piece> pieces_;
   size_t ncoils_ = 0;
   double lo_ = 0, inv_bucket_ = 0;
