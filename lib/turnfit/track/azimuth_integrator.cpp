@@ -349,52 +349,107 @@ struct TermCache {
   }
 };
 
+/// One particle through a grid step (group_step's case n = 1): step_az with the main field
+/// from the row table. A single track is one long dependency chain, which the lane loops
+/// below only lengthen.
+bool lane_step(AzParticle& p, double th, double h, int j0, const StageCells& sc, const FieldRowTable& tab,
+               TermCache& cache) {
+  const TrackModel& m = p.m;
+  const bool rest = !m.main_field_only();
+  const int nt = tab.ntheta;
+  AzState k[kStages], t;
+  const AzState& y = p.y;
+  for (int st = 0; st < kStages; ++st) {
+    for (int i = 0; i < 5; ++i) {
+      double acc = y[i];
+      for (int q = 0; q < st; ++q) acc += h * kA[st][q] * k[q][i];
+      t[i] = acc;
+    }
+    FieldSample f;
+    if (!m.map.sample_row(tab, t[0], (j0 + sc.dj[st]) % nt, sc.slot[st], f)) return false;
+    if (rest) m.add_to_main(t[0], th + kC[st] * h, f, cache.at(m, th, h, st));
+    AzimuthDerivs d;
+    if (!azimuth_eom(t[0], t[1], t[2], t[3], f, p.f.inv_brho, p.f.inv_v, d)) return false;
+    k[st] = {d.dr, d.dx, d.dz, d.dxz, d.dt};
+  }
+  for (int i = 0; i < 5; ++i) {
+    double acc = 0;
+    for (int st = 0; st < kStages; ++st) acc += kB[st] * k[st][i];
+    p.y[i] += h * acc;
+  }
+  return true;
+}
+
 void group_step(AzParticle* const* L, int n, double th, double h, int j0, const StageCells& sc,
                 const FieldRowTable& tab, TermCache& cache, bool* ok) {
+  if (n == 1) {
+    ok[0] = lane_step(*L[0], th, h, j0, sc, tab, cache);
+    return;
+  }
+  // Structure of arrays over the lanes: the stage states and the equations of motion are loops
+  // over lanes that the compiler vectorizes; only the field samples go lane by lane. The
+  // expressions are step_az's and azimuth_eom's, term for term.
   const TrackModel& m = L[0]->m;
   const bool rest = !m.main_field_only();
   const int nt = tab.ntheta;
-  double k[kStages][5][kMaxLanes];
-  for (int l = 0; l < n; ++l) ok[l] = true;
+  double y[5][kMaxLanes], k[kStages][5][kMaxLanes], t[5][kMaxLanes];
+  double ib[kMaxLanes], iv[kMaxLanes], bz[kMaxLanes], br[kMaxLanes], bt[kMaxLanes];
+  unsigned char good[kMaxLanes], noaz[kMaxLanes];
+  for (int l = 0; l < n; ++l) {
+    for (int i = 0; i < 5; ++i) y[i][l] = L[l]->y[static_cast<size_t>(i)];
+    ib[l] = L[l]->f.inv_brho;
+    iv[l] = L[l]->f.inv_v;
+    good[l] = 1;
+    noaz[l] = 0;
+  }
   for (int st = 0; st < kStages; ++st) {
+    // t = y + sum_q (h a_q) k_q, summed in step_az's order.
+    for (int i = 0; i < 5; ++i)
+      for (int l = 0; l < n; ++l) t[i][l] = y[i][l];
+    for (int q = 0; q < st; ++q) {
+      const double ha = h * kA[st][q];
+      for (int i = 0; i < 5; ++i)
+        for (int l = 0; l < n; ++l) t[i][l] += ha * k[q][i][l];
+    }
     const double ths = th + kC[st] * h;
-    int j = (j0 + sc.dj[st]) % nt;
+    const int j = (j0 + sc.dj[st]) % nt;
     const int slot = sc.slot[st];
     const TrackModel::AzimuthTerms* terms = rest ? cache.at(m, th, h, st) : nullptr;
     for (int l = 0; l < n; ++l) {
-      if (!ok[l]) continue;
-      const AzState& y = L[l]->y;
-      double t[5];
-      for (int i = 0; i < 5; ++i) {
-        double acc = y[i];
-        for (int q = 0; q < st; ++q) acc += h * kA[st][q] * k[q][i][l];
-        t[i] = acc;
-      }
       FieldSample f;
-      AzimuthDerivs d;
-      if (!m.map.sample_row(tab, t[0], j, slot, f)) {
-        ok[l] = false;
-        continue;
+      if (!m.map.sample_row(tab, t[0][l], j, slot, f)) {
+        good[l] = 0;
+        f = FieldSample{};
+      } else if (rest) {
+        m.add_to_main(t[0][l], ths, f, terms);
       }
-      if (rest) m.add_to_main(t[0], ths, f, terms);
-      if (!azimuth_eom(t[0], t[1], t[2], t[3], f, L[l]->f.inv_brho, L[l]->f.inv_v, d)) {
-        ok[l] = false;
-        continue;
-      }
-      k[st][0][l] = d.dr;
-      k[st][1][l] = d.dx;
-      k[st][2][l] = d.dz;
-      k[st][3][l] = d.dxz;
-      k[st][4][l] = d.dt;
+      bz[l] = f.bz_T;
+      br[l] = f.dbz_dr_T_m;
+      bt[l] = f.dbz_dth_T;
+    }
+    for (int l = 0; l < n; ++l) noaz[l] |= !(1 - t[1][l] * t[1][l] - t[3][l] * t[3][l] > 0);
+    for (int l = 0; l < n; ++l) {
+      const double r = t[0][l], x = t[1][l], z = t[2][l], xz = t[3][l];
+      const double s2 = 1 - x * x - xz * xz;
+      // (A lane without azimuthal momentum left, s2 <= 0, is dropped below, as step_az drops it.)
+      const double s = std::sqrt(std::fabs(s2));
+      const double r_s = r / s, inv_s = 1 / s;
+      const double b = bz[l] * ib[l], dbr = br[l] * ib[l], dbt = bt[l] * ib[l];
+      k[st][0][l] = r_s * x;
+      k[st][1][l] = s - r * b + xz * inv_s * z * dbt;
+      k[st][2][l] = r_s * xz;
+      k[st][3][l] = z * (r * dbr - x * inv_s * dbt);
+      k[st][4][l] = r_s * iv[l];
     }
   }
   for (int l = 0; l < n; ++l) {
+    ok[l] = good[l] != 0 && noaz[l] == 0;
     if (!ok[l]) continue;
-    AzState& y = L[l]->y;
+    AzState& yl = L[l]->y;
     for (int i = 0; i < 5; ++i) {
       double acc = 0;
       for (int st = 0; st < kStages; ++st) acc += kB[st] * k[st][i][l];
-      y[i] += h * acc;
+      yl[static_cast<size_t>(i)] += h * acc;
     }
   }
 }

@@ -128,14 +128,18 @@ struct TrackModel {
       field_with_effects(r_m, theta_rad, out, terms);
       return;
     }
-    if (coils.empty()) return;
+    if (coils.empty() || no_coil_field()) return;
     const FieldSample main = out;
     double dc = 0;
     const double centre = sector_windows ? sector_centre(r_m, dc) : 0.0;
     add_coils(r_m, theta_rad, main, centre, out);
   }
   /// Whether field() is the main field alone (no effects, no coils).
-  bool main_field_only() const { return !effects.active && coils.empty(); }
+  bool main_field_only() const { return !effects.active && (coils.empty() || no_coil_field()); }
+  /// Whether the coils add nothing (every one at bmax 0, as sum_coils() found them).
+  bool no_coil_field() const {
+    return summed_for_ == coils.size() && coil_sum.empty() && window_sums.empty() && single_coils.empty();
+  }
 
  private:
   bool field_with_effects(double r_m, double theta_rad, FieldSample& out, const AzimuthTerms* terms) const;

@@ -127,6 +127,17 @@ TrimCoilField::TrimCoilField(const TrimCoil& coil, int symmetry) : coil_(coil), 
   for (int s : coil.sectors)
     if (s < 1 || s > symmetry)
       throw Error(ExitCode::data, where + ": sector " + std::to_string(s) + " outside 1.." + std::to_string(symmetry));
+  // The window in_azimuth tests: PHIMIN/PHIMAX (wrapped to [0, 2 pi)) when it is less than a
+  // full circle, and a flag per sector when there is a sector list.
+  const auto wrap = [](double a) { return a - 2 * kPi * std::floor(a / (2 * kPi)); };
+  window_ = !(coil.phimin_deg == 0 && coil.phimax_deg >= 360) && coil.phimax_deg - coil.phimin_deg < 360;
+  phi_a_ = wrap(coil.phimin_deg * kPi / 180);
+  phi_b_ = wrap(coil.phimax_deg * kPi / 180);
+  in_sector_.clear();
+  if (!coil.sectors.empty()) {
+    in_sector_.assign(static_cast<size_t>(symmetry), 0);
+    for (int s : coil.sectors) in_sector_[static_cast<size_t>(s - 1)] = 1;
+  }
 }
 
 void TrimCoilField::shape(double r_m, double& s, double& ds) const {
@@ -276,20 +287,23 @@ TrimCoil bfield_from_phase(const TrimCoil& phase) {
 
 bool TrimCoilField::in_azimuth(double th, double sector_offset) const {
   if (everywhere_) return true;
-  const double two_pi = 2 * kPi;
-  auto wrap = [&](double a) { return a - two_pi * std::floor(a / two_pi); };
-  th = wrap(th);
-  if (!(coil_.phimin_deg == 0 && coil_.phimax_deg >= 360)) {
-    const double a = wrap(coil_.phimin_deg * kPi / 180), b = wrap(coil_.phimax_deg * kPi / 180);
-    const bool inside = a <= b ? (th >= a && th <= b) : (th >= a || th <= b);
-    if (!inside && coil_.phimax_deg - coil_.phimin_deg < 360) return false;
+  // (Stored inverses instead of divisions: a tracker tests this at every field sample of a
+  // coil on some sectors.)
+  const double two_pi = 2 * kPi, inv_two_pi = 1 / two_pi;
+  if (window_) {
+    const double t = th - two_pi * std::floor(th * inv_two_pi);
+    const bool inside = phi_a_ <= phi_b_ ? (t >= phi_a_ && t <= phi_b_) : (t >= phi_a_ || t <= phi_b_);
+    if (!inside) return false;
   }
-  if (coil_.sectors.empty()) return true;
+  if (in_sector_.empty()) return true;
   // Sector k is centred on azimuth (k - 1) 360/N deg from sector 1's centre line (theta = 0
-  // without a spiral).
-  const double width = two_pi / symmetry_;
-  const int k = static_cast<int>(std::floor(wrap(th - sector_offset + 0.5 * width) / width)) % symmetry_ + 1;
-  return std::find(coil_.sectors.begin(), coil_.sectors.end(), k) != coil_.sectors.end();
+  // without a spiral): x counts sector pitches from sector 1's start edge, modulo N.
+  const double n = symmetry_;
+  double x = (th - sector_offset) * (n * inv_two_pi) + 0.5;
+  x -= n * std::floor(x * (1 / n));
+  int k = static_cast<int>(x);
+  if (k >= symmetry_) k -= symmetry_;
+  return in_sector_[static_cast<size_t>(k)] != 0;
 }
 
 void TrimCoilField::add(double r_m, double th, double main_b, double main_db_dr, double main_db_dth,

@@ -76,6 +76,9 @@ class TrimCoilField {
   int symmetry_;
   int kind_;  // 0 bfield, 1 phase, 2 mirrored, 3 table
   bool everywhere_ = false;  // full circle, all sectors: skip the azimuth test
+  bool window_ = false;          // a PHIMIN/PHIMAX window of less than a full circle
+  double phi_a_ = 0, phi_b_ = 0;  // its ends, wrapped to [0, 2 pi) [rad]
+  std::vector<char> in_sector_;   // per sector (index k - 1): in the sector list; empty: no list
   std::vector<double> tr_, ts_, tm_;  // table radii [m], shape values, Hermite slopes
   // Rational coefficients re-expanded about the support's centre r_c: f(r) = sum c_k (r - r_c)^k.
   // Coefficients in r itself cancel heavily at r ~ 4 m (terms of (r/w)^5 ~ 1e9 for a value of 1),
