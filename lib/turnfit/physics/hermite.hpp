@@ -13,4 +13,14 @@ inline double hermite(double y0, double y1, double m0, double m1, double h, doub
   return h00 * y0 + h10 * h * m0 + h01 * y1 + h11 * h * m1;
 }
 
+/// hermite() for tables that keep 1 / h: a multiplication where hermite() divides (lookups
+/// inside a tracker's field samples).
+inline double hermite_inv(double y0, double y1, double m0, double m1, double h, double inv_h, double t, double& dy) {
+  const double t2 = t * t, u = 1 - t;
+  const double h00 = (1 + 2 * t) * u * u, h10 = t * u * u, h01 = t2 * (3 - 2 * t), h11 = t2 * (t - 1);
+  const double d00 = 6 * t2 - 6 * t, d10 = 3 * t2 - 4 * t + 1, d01 = -d00, d11 = 3 * t2 - 2 * t;
+  dy = (d00 * y0 + d01 * y1) * inv_h + d10 * m0 + d11 * m1;
+  return h00 * y0 + h10 * h * m0 + h01 * y1 + h11 * h * m1;
+}
+
 }  // namespace turnfit

@@ -101,6 +101,9 @@ void add_synth_options(CLI::App& app, SynthOptions& o) {
   app.add_option("--tc-excitation-T", o.phase.excitation_T, "Test excitation of each trim coil in its phase scan [T]")
       ->capture_default_str();
   app.add_flag("--no-phase", o.no_phase, "No trim coil phase scans");
+  app.add_flag("--reference-stepper", o.reference_stepper,
+               "azimuth: track one particle at a time with the reference stepper (several times slower; "
+               "the same results to 1e-6 mm: for checks and benchmarks)");
   app.add_flag("--no-profiles", o.no_profiles, "No probe profiles");
   cli::add_common_options(app, o.common, cli::kThreads | cli::kSeed);
 }
@@ -290,6 +293,7 @@ int run_synth(const SynthOptions& o) {
   TrackSettings& st = s.track;
   st = machine_track_settings(m, o.integrator);
   if (o.step_deg > 0) st.step_deg = o.step_deg;
+  st.reference_stepper = o.reference_stepper;
   if (o.turns > 0) st.turns = o.turns;
   if (!(st.turns > 0)) throw usage_error("no turn count: give --turns or tracking.turns in the machine");
   if (st.integrator == "rk4" && !(m.rf.frequency_MHz > 0))

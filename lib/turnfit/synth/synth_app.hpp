@@ -32,6 +32,7 @@ struct SynthOptions {
   bool no_drift = false;
   PhaseModel phase;
   bool no_phase = false;
+  bool reference_stepper = false;  ///< track with the reference stepper (checks, benchmarks)
   bool no_profiles = false;
 };
 

@@ -315,9 +315,6 @@ StageCells stage_cells(int cells) {
   return s;
 }
 
-/// One grid step of h from the node th (in cell j0) for the lanes L[0..n), main field from the
-/// row table; ok[l] false for a lane a stage of which left the map or lost its azimuthal
-/// momentum (its state untouched). The arithmetic is step_az's, lane by lane.
 /// The azimuth's part of the field (TrackModel::azimuth_terms) at the stage azimuths of each
 /// grid step of a turn, computed on first use: every turn repeats them.
 struct TermCache {
@@ -335,10 +332,11 @@ struct TermCache {
     terms.resize(static_cast<size_t>(steps) * kStages);
     known.assign(terms.size(), 0);
   }
-  /// The terms of stage st of the grid step from node th; nullptr without a cache.
-  const TrackModel::AzimuthTerms* at(const TrackModel& m, double th, double h, int st) {
+  /// The terms of stage st of the grid step from node th (the node-th grid node); nullptr
+  /// without a cache.
+  const TrackModel::AzimuthTerms* at(const TrackModel& m, double th, double h, long long node, int st) {
     if (!used) return nullptr;
-    long long k = std::llround((th - node0) / dnode) % steps;
+    long long k = node % steps;
     if (k < 0) k += steps;
     const size_t i = static_cast<size_t>(k) * kStages + static_cast<size_t>(st);
     if (!known[i]) {
@@ -353,7 +351,7 @@ struct TermCache {
 /// from the row table. A single track is one long dependency chain, which the lane loops
 /// below only lengthen.
 bool lane_step(AzParticle& p, double th, double h, int j0, const StageCells& sc, const FieldRowTable& tab,
-               TermCache& cache) {
+               TermCache& cache, long long node) {
   const TrackModel& m = p.m;
   const bool rest = !m.main_field_only();
   const int nt = tab.ntheta;
@@ -367,7 +365,7 @@ bool lane_step(AzParticle& p, double th, double h, int j0, const StageCells& sc,
     }
     FieldSample f;
     if (!m.map.sample_row(tab, t[0], (j0 + sc.dj[st]) % nt, sc.slot[st], f)) return false;
-    if (rest) m.add_to_main(t[0], th + kC[st] * h, f, cache.at(m, th, h, st));
+    if (rest) m.add_to_main(t[0], th + kC[st] * h, f, cache.at(m, th, h, node, st));
     AzimuthDerivs d;
     if (!azimuth_eom(t[0], t[1], t[2], t[3], f, p.f.inv_brho, p.f.inv_v, d)) return false;
     k[st] = {d.dr, d.dx, d.dz, d.dxz, d.dt};
@@ -380,10 +378,13 @@ bool lane_step(AzParticle& p, double th, double h, int j0, const StageCells& sc,
   return true;
 }
 
+/// One grid step of h from the node th (in cell j0) for the lanes L[0..n), main field from the
+/// row table; ok[l] false for a lane a stage of which left the map or lost its azimuthal
+/// momentum (its state untouched). The arithmetic is step_az's, lane by lane.
 void group_step(AzParticle* const* L, int n, double th, double h, int j0, const StageCells& sc,
-                const FieldRowTable& tab, TermCache& cache, bool* ok) {
+                const FieldRowTable& tab, TermCache& cache, long long node, bool* ok) {
   if (n == 1) {
-    ok[0] = lane_step(*L[0], th, h, j0, sc, tab, cache);
+    ok[0] = lane_step(*L[0], th, h, j0, sc, tab, cache, node);
     return;
   }
   // Structure of arrays over the lanes: the stage states and the equations of motion are loops
@@ -414,7 +415,7 @@ void group_step(AzParticle* const* L, int n, double th, double h, int j0, const 
     const double ths = th + kC[st] * h;
     const int j = (j0 + sc.dj[st]) % nt;
     const int slot = sc.slot[st];
-    const TrackModel::AzimuthTerms* terms = rest ? cache.at(m, th, h, st) : nullptr;
+    const TrackModel::AzimuthTerms* terms = rest ? cache.at(m, th, h, node, st) : nullptr;
     for (int l = 0; l < n; ++l) {
       FieldSample f;
       if (!m.map.sample_row(tab, t[0][l], j, slot, f)) {
@@ -493,8 +494,10 @@ void track_azimuth_group(const TrackModel& m, const ParticleState* s0, size_t n,
   // fractions of a cell sample the reference way).
   std::shared_ptr<const FieldRowTable> tab;
   StageCells sc{};
+  long long cells_per_step = 1;
   if (!m.opal_map && cells > 0.5 && std::fabs(cells - std::round(cells)) < 1e-9) {
-    sc = stage_cells(static_cast<int>(std::round(cells)));
+    cells_per_step = static_cast<int>(std::round(cells));
+    sc = stage_cells(cells_per_step);
     tab = m.map.row_table(sc.v);
   }
   const int nt = g.ntheta;
@@ -525,10 +528,11 @@ void track_azimuth_group(const TrackModel& m, const ParticleState* s0, size_t n,
       }
     }
     if (ng > 0) {
-      long long kk = std::llround((th - node0) / cell);
-      int j0 = static_cast<int>(kk % nt);
+      // The node's index, and the cell it starts (th is within rounding of a node).
+      const long long node = static_cast<long long>(std::floor((th - node0) / dnode + 0.5));
+      int j0 = static_cast<int>((node * cells_per_step) % nt);
       if (j0 < 0) j0 += nt;
-      group_step(group, ng, th, stop - th, j0, sc, *tab, cache, ok);
+      group_step(group, ng, th, stop - th, j0, sc, *tab, cache, node, ok);
       for (int l = 0; l < ng; ++l) {
         AzParticle& p = *group[l];
         if (!ok[l]) {

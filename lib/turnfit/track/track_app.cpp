@@ -33,6 +33,9 @@ void add_track_options(CLI::App& app, TrackOptions& o) {
       ->check(CLI::Range(0.0, 1e6));
   app.add_flag("--list-integrators", o.list_integrators, "List the integrators and exit");
   app.add_option("--kicks", o.kicks, "Also write every gap crossing (CSV) to this file");
+  app.add_flag("--reference-stepper", o.reference_stepper,
+               "azimuth: track one particle at a time with the reference stepper (several times slower for "
+               "bunches; the same results to 1e-6 mm: for checks and benchmarks)");
   app.add_flag("--opal-deflection", o.opal_deflection,
                "RF magnetic deflection as OPAL 2022.1 computes it (2 pi smaller than Faraday's law)");
   app.add_flag("--opal-compat", o.opal_compat,
@@ -178,6 +181,7 @@ int run_track(const TrackOptions& o) {
   if (st.steps_per_turn < 16)
     throw data_error(m.path, 0, "/tracking/steps_per_turn: " + std::to_string(st.steps_per_turn) + " is too few (at least 16)");
   if (o.step_deg > 0) st.step_deg = o.step_deg;
+  st.reference_stepper = o.reference_stepper;
   if (o.turns > 0) st.turns = o.turns;
   if (!(st.turns > 0)) throw usage_error("no turn count: give --turns or tracking.turns in the machine");
   if (st.integrator == "rk4" && !(model.rf_MHz > 0))

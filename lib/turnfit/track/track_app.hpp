@@ -25,6 +25,7 @@ struct TrackOptions {
   bool list_integrators = false;
   std::string kicks;          ///< --kicks FILE: every gap crossing as CSV
   bool opal_deflection = false;  ///< OPAL 2022.1's RF deflection (divided by 2 pi)
+  bool reference_stepper = false;  ///< the reference stepper (checks, benchmarks)
   bool opal_compat = false;      ///< OPAL-cycl 2022.1's numerics throughout
   int particles = -1;            ///< bunch size (-1: machine's bunch.particles; 0: one particle)
   std::string bunch;             ///< --bunch FILE: offsets instead of the Gaussian

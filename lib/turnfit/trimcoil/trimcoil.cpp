@@ -145,7 +145,7 @@ void TrimCoilField::shape(double r_m, double& s, double& ds) const {
     const double x = (r_m - g.r0) * g.inv_h;
     if (!(x >= 0 && x <= static_cast<double>(g.s.size() - 1))) continue;
     const size_t i = std::min(static_cast<size_t>(x), g.s.size() - 2);
-    s = hermite(g.s[i], g.s[i + 1], g.ds[i], g.ds[i + 1], g.h, x - static_cast<double>(i), ds);
+    s = hermite_inv(g.s[i], g.s[i + 1], g.ds[i], g.ds[i + 1], g.h, g.inv_h, x - static_cast<double>(i), ds);
     return;
   }
   shape_exact(r_m, s, ds);
@@ -420,7 +420,7 @@ void TrimCoilSum::value(double r, double& b, double& db) const {
   const Piece& p = pieces_[q];
   const double t = (r - p.r0) * p.inv_h;
   const size_t i = std::min(static_cast<size_t>(t), p.s.size() - 2);
-  b = hermite(p.s[i], p.s[i + 1], p.ds[i], p.ds[i + 1], p.h, t - static_cast<double>(i), db);
+  b = hermite_inv(p.s[i], p.s[i + 1], p.ds[i], p.ds[i + 1], p.h, p.inv_h, t - static_cast<double>(i), db);
 }
 
 void TrimCoilSum::add(double r_m, double main_b, double main_db_dr, double main_db_dth, double threshold_T, double& b,
