@@ -2,6 +2,7 @@
 // C1 bicubic-spline interpolation (tunes need continuous dBz/dr and dBz/dtheta).
 #pragma once
 
+#include <algorithm>
 #include <array>
 #include <functional>
 #include <memory>
@@ -96,6 +97,25 @@ class PolarFieldMap {
     out.bz_T = ((q.row[3] * u + q.row[2]) * u + q.row[1]) * u + q.row[0];
     out.dbz_dr_T_m = ((3 * q.row[3] * u + 2 * q.row[2]) * u + q.row[1]) * inv_dr_;
     out.dbz_dth_T = (((q.drow[3] * u + q.drow[2]) * u + q.drow[1]) * u + q.drow[0]) * inv_dth_;
+    return true;
+  }
+  /// sample_row with the radial cell of the previous sample as a guess (`cell`, -1: none; set
+  /// to this sample's): while the radius stays in that cell, the row's address is known before
+  /// the radius is, and a single particle's dependency chain loses the index computation and
+  /// the load. The same numbers to rounding (u from the cell's edge instead of from r_min).
+  bool sample_row_near(const FieldRowTable& t, double r_m, int j, int s, int& cell, FieldSample& out) const {
+    if (cell >= 0) {
+      const FieldRowTable::Rows& q = t.at(cell, j, s);
+      const double u = (r_m - (r_min_ + cell * grid_.dr_m())) * inv_dr_;
+      if (u >= 0 && u < 1) {
+        out.bz_T = ((q.row[3] * u + q.row[2]) * u + q.row[1]) * u + q.row[0];
+        out.dbz_dr_T_m = ((3 * q.row[3] * u + 2 * q.row[2]) * u + q.row[1]) * inv_dr_;
+        out.dbz_dth_T = (((q.drow[3] * u + q.drow[2]) * u + q.drow[1]) * u + q.drow[0]) * inv_dth_;
+        return true;
+      }
+    }
+    if (!sample_row(t, r_m, j, s, out)) return false;
+    cell = std::min(static_cast<int>((r_m - r_min_) * inv_dr_), grid_.nr - 2);
     return true;
   }
 

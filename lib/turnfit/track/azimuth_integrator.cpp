@@ -118,6 +118,7 @@ struct AzParticle {
   double dnode = 0, node0 = 0;
   std::vector<Event> events;
   TrackEnd end;
+  int cell = -1;  // radial map cell of the last row-table sample (PolarFieldMap::sample_row_near)
 
   AzParticle(const TrackModel& model, const ParticleState& s0, const TrackSettings& settings,
              std::vector<TurnRecord>* t, std::vector<KickRecord>* k, std::vector<PathPoint>* p)
@@ -364,7 +365,7 @@ bool lane_step(AzParticle& p, double th, double h, int j0, const StageCells& sc,
       t[i] = acc;
     }
     FieldSample f;
-    if (!m.map.sample_row(tab, t[0], (j0 + sc.dj[st]) % nt, sc.slot[st], f)) return false;
+    if (!m.map.sample_row_near(tab, t[0], (j0 + sc.dj[st]) % nt, sc.slot[st], p.cell, f)) return false;
     if (rest) m.add_to_main(t[0], th + kC[st] * h, f, cache.at(m, th, h, node, st));
     AzimuthDerivs d;
     if (!azimuth_eom(t[0], t[1], t[2], t[3], f, p.f.inv_brho, p.f.inv_v, d)) return false;
@@ -418,7 +419,8 @@ void group_step(AzParticle* const* L, int n, double th, double h, int j0, const 
     const TrackModel::AzimuthTerms* terms = rest ? cache.at(m, th, h, node, st) : nullptr;
     for (int l = 0; l < n; ++l) {
       FieldSample f;
-      if (!m.map.sample_row(tab, t[0][l], j, slot, f)) {
+      // The cell guess as lane_step keeps it: a lane's numbers do not depend on its group.
+      if (!m.map.sample_row_near(tab, t[0][l], j, slot, L[l]->cell, f)) {
         good[l] = 0;
         f = FieldSample{};
       } else if (rest) {
