@@ -108,9 +108,11 @@ class PolarFieldMap {
       const FieldRowTable::Rows& q = t.at(cell, j, s);
       const double u = (r_m - (r_min_ + cell * grid_.dr_m())) * inv_dr_;
       if (u >= 0 && u < 1) {
-        out.bz_T = ((q.row[3] * u + q.row[2]) * u + q.row[1]) * u + q.row[0];
-        out.dbz_dr_T_m = ((3 * q.row[3] * u + 2 * q.row[2]) * u + q.row[1]) * inv_dr_;
-        out.dbz_dth_T = (((q.drow[3] * u + q.drow[2]) * u + q.drow[1]) * u + q.drow[0]) * inv_dth_;
+        // Estrin's scheme: two levels of products where Horner's has three.
+        const double u2 = u * u;
+        out.bz_T = (q.row[0] + q.row[1] * u) + u2 * (q.row[2] + q.row[3] * u);
+        out.dbz_dr_T_m = ((q.row[1] + 2 * q.row[2] * u) + 3 * q.row[3] * u2) * inv_dr_;
+        out.dbz_dth_T = ((q.drow[0] + q.drow[1] * u) + u2 * (q.drow[2] + q.drow[3] * u)) * inv_dth_;
         return true;
       }
     }

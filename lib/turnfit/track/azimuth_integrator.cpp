@@ -348,6 +348,24 @@ struct TermCache {
   }
 };
 
+/// The equations of motion of physics/azimuth_eom.hpp for the fast steppers, arranged so that
+/// the field enters last (r / (B rho) and the other factors are ready before it: a single
+/// particle's step is one dependency chain through the field samples). The same numbers as
+/// azimuth_eom to rounding. s2 = 1 - x^2 - xz^2 <= 0 (no azimuthal momentum left) is the
+/// caller's to test: it gives finite numbers here, to be dropped.
+inline void fast_eom(double r, double x, double z, double xz, double bz, double br, double bt, double inv_brho,
+                     double inv_v, double& dr, double& dx, double& dz, double& dxz, double& dt) {
+  const double s2 = 1 - x * x - xz * xz;
+  const double s = std::sqrt(std::fabs(s2));
+  const double r_s = r / s, inv_s = 1 / s;
+  const double rib = r * inv_brho, zt = xz * inv_s * z * inv_brho;
+  dr = r_s * x;
+  dx = (s + zt * bt) - rib * bz;
+  dz = r_s * xz;
+  dxz = z * (rib * br - x * inv_s * inv_brho * bt);
+  dt = r_s * inv_v;
+}
+
 /// One particle through a grid step (group_step's case n = 1): step_az with the main field
 /// from the row table. A single track is one long dependency chain, which the lane loops
 /// below only lengthen.
@@ -367,9 +385,9 @@ bool lane_step(AzParticle& p, double th, double h, int j0, const StageCells& sc,
     FieldSample f;
     if (!m.map.sample_row_near(tab, t[0], (j0 + sc.dj[st]) % nt, sc.slot[st], p.cell, f)) return false;
     if (rest) m.add_to_main(t[0], th + kC[st] * h, f, cache.at(m, th, h, node, st));
-    AzimuthDerivs d;
-    if (!azimuth_eom(t[0], t[1], t[2], t[3], f, p.f.inv_brho, p.f.inv_v, d)) return false;
-    k[st] = {d.dr, d.dx, d.dz, d.dxz, d.dt};
+    if (!(1 - t[1] * t[1] - t[3] * t[3] > 0)) return false;
+    fast_eom(t[0], t[1], t[2], t[3], f.bz_T, f.dbz_dr_T_m, f.dbz_dth_T, p.f.inv_brho, p.f.inv_v, k[st][0], k[st][1],
+             k[st][2], k[st][3], k[st][4]);
   }
   for (int i = 0; i < 5; ++i) {
     double acc = 0;
@@ -431,19 +449,10 @@ void group_step(AzParticle* const* L, int n, double th, double h, int j0, const 
       bt[l] = f.dbz_dth_T;
     }
     for (int l = 0; l < n; ++l) noaz[l] |= !(1 - t[1][l] * t[1][l] - t[3][l] * t[3][l] > 0);
-    for (int l = 0; l < n; ++l) {
-      const double r = t[0][l], x = t[1][l], z = t[2][l], xz = t[3][l];
-      const double s2 = 1 - x * x - xz * xz;
-      // (A lane without azimuthal momentum left, s2 <= 0, is dropped below, as step_az drops it.)
-      const double s = std::sqrt(std::fabs(s2));
-      const double r_s = r / s, inv_s = 1 / s;
-      const double b = bz[l] * ib[l], dbr = br[l] * ib[l], dbt = bt[l] * ib[l];
-      k[st][0][l] = r_s * x;
-      k[st][1][l] = s - r * b + xz * inv_s * z * dbt;
-      k[st][2][l] = r_s * xz;
-      k[st][3][l] = z * (r * dbr - x * inv_s * dbt);
-      k[st][4][l] = r_s * iv[l];
-    }
+    // (A lane without azimuthal momentum left is dropped below, as step_az drops it.)
+    for (int l = 0; l < n; ++l)
+      fast_eom(t[0][l], t[1][l], t[2][l], t[3][l], bz[l], br[l], bt[l], ib[l], iv[l], k[st][0][l], k[st][1][l],
+               k[st][2][l], k[st][3][l], k[st][4][l]);
   }
   for (int l = 0; l < n; ++l) {
     ok[l] = good[l] != 0 && noaz[l] == 0;
