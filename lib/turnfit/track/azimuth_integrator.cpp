@@ -333,15 +333,18 @@ struct TermCache {
     terms.resize(static_cast<size_t>(steps) * kStages);
     known.assign(terms.size(), 0);
   }
-  /// The terms of stage st of the grid step from node th (the node-th grid node); nullptr
-  /// without a cache.
-  const TrackModel::AzimuthTerms* at(const TrackModel& m, double th, double h, long long node, int st) {
+  /// The terms of stage st of the grid step from grid node `node`; nullptr without a cache.
+  const TrackModel::AzimuthTerms* at(const TrackModel& m, long long node, int st) {
     if (!used) return nullptr;
     long long k = node % steps;
     if (k < 0) k += steps;
     const size_t i = static_cast<size_t>(k) * kStages + static_cast<size_t>(st);
     if (!known[i]) {
-      m.azimuth_terms(th + kC[st] * h, terms[i]);
+      // From the node's place in the turn and the nominal step, not from this step's th and h
+      // (which carry the rounding of the unwrapped azimuth): whichever turn, and whichever
+      // particle of a group, comes first, the terms are the same, so a particle's numbers do
+      // not depend on its group.
+      m.azimuth_terms(node0 + static_cast<double>(k) * dnode + kC[st] * dnode, terms[i]);
       known[i] = 1;
     }
     return &terms[i];
@@ -384,7 +387,7 @@ bool lane_step(AzParticle& p, double th, double h, int j0, const StageCells& sc,
     }
     FieldSample f;
     if (!m.map.sample_row_near(tab, t[0], (j0 + sc.dj[st]) % nt, sc.slot[st], p.cell, f)) return false;
-    if (rest) m.add_to_main(t[0], th + kC[st] * h, f, cache.at(m, th, h, node, st));
+    if (rest) m.add_to_main(t[0], th + kC[st] * h, f, cache.at(m, node, st));
     if (!(1 - t[1] * t[1] - t[3] * t[3] > 0)) return false;
     fast_eom(t[0], t[1], t[2], t[3], f.bz_T, f.dbz_dr_T_m, f.dbz_dth_T, p.f.inv_brho, p.f.inv_v, k[st][0], k[st][1],
              k[st][2], k[st][3], k[st][4]);
@@ -434,7 +437,7 @@ void group_step(AzParticle* const* L, int n, double th, double h, int j0, const 
     const double ths = th + kC[st] * h;
     const int j = (j0 + sc.dj[st]) % nt;
     const int slot = sc.slot[st];
-    const TrackModel::AzimuthTerms* terms = rest ? cache.at(m, th, h, node, st) : nullptr;
+    const TrackModel::AzimuthTerms* terms = rest ? cache.at(m, node, st) : nullptr;
     for (int l = 0; l < n; ++l) {
       FieldSample f;
       // The cell guess as lane_step keeps it: a lane's numbers do not depend on its group.
