@@ -411,7 +411,8 @@ void group_step(AzParticle* const* L, int n, double th, double h, int j0, const 
   }
   // Structure of arrays over the lanes: the stage states and the equations of motion are loops
   // over lanes that the compiler vectorizes; only the field samples go lane by lane. The
-  // expressions are step_az's and azimuth_eom's, term for term.
+  // expressions are lane_step's, term for term (so a lane's numbers do not depend on whether it
+  // stepped alone or in a group).
   const TrackModel& m = L[0]->m;
   const bool rest = !m.main_field_only();
   const int nt = tab.ntheta;

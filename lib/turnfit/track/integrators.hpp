@@ -48,8 +48,9 @@ struct GroupOutput {
 /// The same integrator for n particles stepped together in groups of up to kMaxLanes (one
 /// group of one is the single-particle path): particles that start at one azimuth share every
 /// grid step, and the main field comes from the map's row table at the stage azimuths. Each
-/// particle's records and end are what track_azimuth gives to rounding (the same arithmetic,
-/// the field's rows evaluated before instead of during the step).
+/// particle's records and end are what track_azimuth gives to rounding (the same equations, the
+/// field's rows evaluated before instead of during the step, the equations of motion in
+/// another order), and do not depend on which particles share its group.
 void track_azimuth_group(const TrackModel& m, const ParticleState* s0, size_t n, const TrackSettings& st,
                          GroupOutput* out);
 
