@@ -75,7 +75,8 @@ struct CentroidTurns {
 /// nodes with their weights: r, s, t and energy directly, the phase as the reference's plus the
 /// mean of each node's difference to it, wrapped to (-180, 180]. Where a node missed the
 /// crossing (lost, short of the last turn, or unable to start) the centre is the reference's
-/// record. Throws what tracking the reference throws.
+/// record. Throws what tracking any of them throws (the steppers report losses instead; what
+/// is left is running out of memory).
 CentroidTurns centroid_turns(const TrackModel& model, const ParticleState& reference, const Injection& inj,
                              double mass_MeV, const std::vector<QuadratureNode>& nodes, const TrackSettings& settings,
                              unsigned threads);
