@@ -137,20 +137,12 @@ std::shared_ptr<const FieldRowTable> PolarFieldMap::row_table(const std::vector<
   t->v = v;
   t->nslot = static_cast<int>(v.size());
   t->ntheta = grid_.ntheta;
-  t->nr = grid_.nr;
   t->rows.resize(static_cast<size_t>(grid_.nr - 1) * grid_.ntheta * v.size());
   for (int i = 0; i < grid_.nr - 1; ++i)
     for (int j = 0; j < grid_.ntheta; ++j)
       for (int s = 0; s < t->nslot; ++s) {
-        // The expressions of sample(), in its order.
-        const auto& a = patch_[static_cast<size_t>(i) * grid_.ntheta + j];
-        const double vs = v[static_cast<size_t>(s)];
         FieldRowTable::Rows& q = t->rows[(static_cast<size_t>(i) * grid_.ntheta + j) * t->nslot + s];
-        for (int k = 0; k < 4; ++k) {
-          const double* c = &a[k * 4];
-          q.row[k] = ((c[3] * vs + c[2]) * vs + c[1]) * vs + c[0];
-          q.drow[k] = (3 * c[3] * vs + 2 * c[2]) * vs + c[1];
-        }
+        patch_rows(patch_[static_cast<size_t>(i) * grid_.ntheta + j], v[static_cast<size_t>(s)], q.row, q.drow);
       }
   row_cache_->tables.push_back(t);
   return t;
@@ -158,27 +150,17 @@ std::shared_ptr<const FieldRowTable> PolarFieldMap::row_table(const std::vector<
 
 bool PolarFieldMap::sample(double r_m, double theta_rad, FieldSample& out) const {
   if (!(r_m >= r_min_ && r_m <= r_max_)) return false;
-  double x = (r_m - r_min_) * inv_dr_;
-  int i = static_cast<int>(x);
-  if (i >= grid_.nr - 1) i = grid_.nr - 2;
-  const double u = x - i;
+  double u;
+  const int i = radial_cell(r_m, u);
   double y = (theta_rad - theta_min_) * inv_dth_;
   const double nt = grid_.ntheta;
   if (y < 0 || y >= nt) y -= nt * std::floor(y / nt);  // periodic in theta (cheaper than fmod)
   int j = static_cast<int>(y);
   if (j >= grid_.ntheta) j = grid_.ntheta - 1;  // y rounded up to nt
   const double v = y - j;
-  const auto& a = patch_[static_cast<size_t>(i) * grid_.ntheta + j];
-  // Horner in v for each power of u, with the v-derivative alongside.
   double row[4], drow[4];
-  for (int k = 0; k < 4; ++k) {
-    const double* c = &a[k * 4];
-    row[k] = ((c[3] * v + c[2]) * v + c[1]) * v + c[0];
-    drow[k] = (3 * c[3] * v + 2 * c[2]) * v + c[1];
-  }
-  out.bz_T = ((row[3] * u + row[2]) * u + row[1]) * u + row[0];
-  out.dbz_dr_T_m = ((3 * row[3] * u + 2 * row[2]) * u + row[1]) * inv_dr_;
-  out.dbz_dth_T = (((drow[3] * u + drow[2]) * u + drow[1]) * u + drow[0]) * inv_dth_;
+  patch_rows(patch_[static_cast<size_t>(i) * grid_.ntheta + j], v, row, drow);
+  from_rows(row, drow, u, out);
   return true;
 }
 

@@ -2,7 +2,6 @@
 // C1 bicubic-spline interpolation (tunes need continuous dBz/dr and dBz/dtheta).
 #pragma once
 
-#include <algorithm>
 #include <array>
 #include <functional>
 #include <memory>
@@ -54,7 +53,7 @@ struct FieldRowTable {
     double row[4], drow[4];
   };
   std::vector<double> v;  ///< offsets v_s in [0, 1)
-  int nslot = 0, ntheta = 0, nr = 0;
+  int nslot = 0, ntheta = 0;
   std::vector<Rows> rows;  ///< (i * ntheta + j) * nslot + s
   const Rows& at(int i, int j, int s) const {
     return rows[(static_cast<size_t>(i) * ntheta + j) * nslot + s];
@@ -89,14 +88,9 @@ class PolarFieldMap {
   /// radial range.
   bool sample_row(const FieldRowTable& t, double r_m, int j, int s, FieldSample& out) const {
     if (!(r_m >= r_min_ && r_m <= r_max_)) return false;
-    const double x = (r_m - r_min_) * inv_dr_;
-    int i = static_cast<int>(x);
-    if (i >= grid_.nr - 1) i = grid_.nr - 2;
-    const double u = x - i;
-    const FieldRowTable::Rows& q = t.at(i, j, s);
-    out.bz_T = ((q.row[3] * u + q.row[2]) * u + q.row[1]) * u + q.row[0];
-    out.dbz_dr_T_m = ((3 * q.row[3] * u + 2 * q.row[2]) * u + q.row[1]) * inv_dr_;
-    out.dbz_dth_T = (((q.drow[3] * u + q.drow[2]) * u + q.drow[1]) * u + q.drow[0]) * inv_dth_;
+    double u;
+    const FieldRowTable::Rows& q = t.at(radial_cell(r_m, u), j, s);
+    from_rows(q.row, q.drow, u, out);
     return true;
   }
   /// sample_row with the radial cell of the previous sample as a guess (`cell`, -1: none; set
@@ -116,8 +110,11 @@ class PolarFieldMap {
         return true;
       }
     }
-    if (!sample_row(t, r_m, j, s, out)) return false;
-    cell = std::min(static_cast<int>((r_m - r_min_) * inv_dr_), grid_.nr - 2);
+    if (!(r_m >= r_min_ && r_m <= r_max_)) return false;
+    double u;
+    cell = radial_cell(r_m, u);
+    const FieldRowTable::Rows& q = t.at(cell, j, s);
+    from_rows(q.row, q.drow, u, out);
     return true;
   }
 
@@ -136,6 +133,29 @@ class PolarFieldMap {
 
  private:
   void build();
+  // sample()'s parts, shared with the row tables so that both give the same numbers.
+  /// The radial cell of r (inside the map) and the position u in it.
+  int radial_cell(double r_m, double& u) const {
+    const double x = (r_m - r_min_) * inv_dr_;
+    int i = static_cast<int>(x);
+    if (i >= grid_.nr - 1) i = grid_.nr - 2;
+    u = x - i;
+    return i;
+  }
+  /// A patch's polynomial in v for each power of u (Horner), with the v-derivative alongside.
+  static void patch_rows(const std::array<double, 16>& a, double v, double row[4], double drow[4]) {
+    for (int k = 0; k < 4; ++k) {
+      const double* c = &a[k * 4];
+      row[k] = ((c[3] * v + c[2]) * v + c[1]) * v + c[0];
+      drow[k] = (3 * c[3] * v + 2 * c[2]) * v + c[1];
+    }
+  }
+  /// The field at u from the rows (Horner in u).
+  void from_rows(const double row[4], const double drow[4], double u, FieldSample& out) const {
+    out.bz_T = ((row[3] * u + row[2]) * u + row[1]) * u + row[0];
+    out.dbz_dr_T_m = ((3 * row[3] * u + 2 * row[2]) * u + row[1]) * inv_dr_;
+    out.dbz_dth_T = (((drow[3] * u + drow[2]) * u + drow[1]) * u + drow[0]) * inv_dth_;
+  }
   // The values and patches never change after construction and are shared between copies: an
   // optimizer builds a model (holding a copy of the map) per design, and copying ring8's 2.7 MB
   // of patches cost each design a memcpy and 700 page faults.

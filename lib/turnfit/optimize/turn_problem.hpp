@@ -105,9 +105,9 @@ class TurnPatternProblem : public Problem {
   /// a fit with it weighs each probe's residuals by their full covariance (Whitener).
   const ScanNoise& scan_noise() const { return scan_noise_; }
   /// Sets it (not while evaluations run).
+  void set_scan_noise(const ScanNoise& s) { scan_noise_ = s; }
   /// Tracks with the reference stepper (TrackSettings::reference_stepper): for benchmarks.
   void set_reference_stepper(bool on) { settings_.reference_stepper = on; }
-  void set_scan_noise(const ScanNoise& s) { scan_noise_ = s; }
   /// "centroid" (the measured bunch's centre: the reference particle plus the centroid shift)
   /// or "reference" (the reference particle alone): the problem file's "bunch"; by default
   /// "centroid" when the machine has a bunch with spread, else "reference".
