@@ -122,17 +122,25 @@ struct TrackModel {
     double cos_h[kAzimuthHarmonics], sin_h[kAzimuthHarmonics];
   };
   void azimuth_terms(double theta_rad, AzimuthTerms& t) const;
-  /// With `terms` (azimuth_terms of this theta), the azimuth's part is not computed again.
-  void add_to_main(double r_m, double theta_rad, FieldSample& out, const AzimuthTerms* terms = nullptr) const {
+  /// A particle's places in the summed coil tables (TrimCoilSum::Hint), kept by the fast
+  /// steppers from one sample to the next: coil_sum's and the first kHintedWindows window sums'.
+  static constexpr size_t kHintedWindows = 8;
+  struct CoilHints {
+    TrimCoilSum::Hint all, window[kHintedWindows];
+  };
+  /// With `terms` (azimuth_terms of this theta), the azimuth's part is not computed again; with
+  /// `hints`, the coil tables are looked up from them (the same numbers).
+  void add_to_main(double r_m, double theta_rad, FieldSample& out, const AzimuthTerms* terms = nullptr,
+                   CoilHints* hints = nullptr) const {
     if (effects.active) {
-      field_with_effects(r_m, theta_rad, out, terms);
+      field_with_effects(r_m, theta_rad, out, terms, hints);
       return;
     }
     if (coils.empty() || no_coil_field()) return;
     const FieldSample main = out;
     double dc = 0;
     const double centre = sector_windows ? sector_centre(r_m, dc) : 0.0;
-    add_coils(r_m, theta_rad, main, centre, out);
+    add_coils(r_m, theta_rad, main, centre, out, hints);
   }
   /// Whether field() is the main field alone (no effects, no coils).
   bool main_field_only() const { return !effects.active && (coils.empty() || no_coil_field()); }
@@ -142,9 +150,10 @@ struct TrackModel {
   }
 
  private:
-  bool field_with_effects(double r_m, double theta_rad, FieldSample& out, const AzimuthTerms* terms) const;
-  void add_coils(double r_m, double theta_rad, const FieldSample& main, double sector_centre_rad,
-                 FieldSample& out) const;
+  bool field_with_effects(double r_m, double theta_rad, FieldSample& out, const AzimuthTerms* terms,
+                          CoilHints* hints) const;
+  void add_coils(double r_m, double theta_rad, const FieldSample& main, double sector_centre_rad, FieldSample& out,
+                 CoilHints* hints) const;
   size_t summed_for_ = static_cast<size_t>(-1);  // coils.size() when sum_coils() ran
 };
 

@@ -291,7 +291,8 @@ bool TrimCoilField::in_azimuth(double th, double sector_offset) const {
   // coil on some sectors.)
   const double two_pi = 2 * kPi, inv_two_pi = 1 / two_pi;
   if (window_) {
-    const double t = th - two_pi * std::floor(th * inv_two_pi);
+    // (Azimuths within a turn, as the fast steppers pass them, need no floor.)
+    const double t = th >= 0 && th < two_pi ? th : th - two_pi * std::floor(th * inv_two_pi);
     const bool inside = phi_a_ <= phi_b_ ? (t >= phi_a_ && t <= phi_b_) : (t >= phi_a_ || t <= phi_b_);
     if (!inside) return false;
   }
@@ -300,7 +301,7 @@ bool TrimCoilField::in_azimuth(double th, double sector_offset) const {
   // without a spiral): x counts sector pitches from sector 1's start edge, modulo N.
   const double n = symmetry_;
   double x = (th - sector_offset) * (n * inv_two_pi) + 0.5;
-  x -= n * std::floor(x * (1 / n));
+  if (!(x >= 0 && x < n)) x -= n * std::floor(x * (1 / n));
   int k = static_cast<int>(x);
   if (k >= symmetry_) k -= symmetry_;
   return in_sector_[static_cast<size_t>(k)] != 0;
@@ -410,23 +411,35 @@ size_t TrimCoilSum::nodes() const {
 }
 
 void TrimCoilSum::value(double r, double& b, double& db) const {
+  Hint unused;
+  lookup(r, unused, b, db);
+}
+
+void TrimCoilSum::lookup(double r, Hint& hint, double& b, double& db) const {
   b = db = 0;
+  hint.piece = ~0u;
   if (pieces_.empty()) return;
   const double x = (r - lo_) * inv_bucket_;
   if (!(x >= 0 && x < static_cast<double>(bucket_.size()))) return;
   size_t q = bucket_[static_cast<size_t>(x)];
   while (q < pieces_.size() && pieces_[q].r1 < r) ++q;
   if (q == pieces_.size() || r < pieces_[q].r0) return;  // past the end, or a gap no coil covers
-  const Piece& p = pieces_[q];
-  const double t = (r - p.r0) * p.inv_h;
-  const size_t i = std::min(static_cast<size_t>(t), p.s.size() - 2);
-  b = hermite_inv(p.s[i], p.s[i + 1], p.ds[i], p.ds[i + 1], p.h, p.inv_h, t - static_cast<double>(i), db);
+  hint.piece = static_cast<unsigned>(q);
+  node_value(pieces_[q], r, b, db);
 }
 
 void TrimCoilSum::add(double r_m, double main_b, double main_db_dr, double main_db_dth, double threshold_T, double& b,
                       double& db_dr, double& db_dth) const {
   double s, ds;
   value(r_m, s, ds);
+  if (s == 0 && ds == 0) return;
+  add_faded(s, ds, main_b, main_db_dr, main_db_dth, threshold_T, b, db_dr, db_dth);
+}
+
+void TrimCoilSum::add_near(double r_m, Hint& hint, double main_b, double main_db_dr, double main_db_dth,
+                           double threshold_T, double& b, double& db_dr, double& db_dth) const {
+  double s, ds;
+  value_near(r_m, hint, s, ds);
   if (s == 0 && ds == 0) return;
   add_faded(s, ds, main_b, main_db_dr, main_db_dth, threshold_T, b, db_dr, db_dth);
 }

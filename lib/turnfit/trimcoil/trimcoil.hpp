@@ -2,10 +2,12 @@
 // restricted by radius, azimuth window, sector list and the main-field threshold.
 #pragma once
 
+#include <algorithm>
 #include <string>
 #include <vector>
 
 #include "turnfit/machine/machine.hpp"
+#include "turnfit/physics/hermite.hpp"
 
 namespace turnfit {
 
@@ -127,12 +129,44 @@ class TrimCoilSum {
   void add(double r_m, double main_b_T, double main_db_dr, double main_db_dth, double threshold_T, double& b,
            double& db_dr, double& db_dth) const;
 
+  /// The piece the last lookup of a caller that samples nearby radii landed in: the fast
+  /// steppers keep one per particle and table. (Pieces are long, nodes short: a particle's
+  /// radius changes node at nearly every sample, piece about once a turn.)
+  struct Hint {
+    unsigned piece = ~0u;
+  };
+  /// value() in the hint's piece when r is still in it (no search on the way from the radius
+  /// to the rows), else by value()'s search, which sets the hint. The same numbers as value()
+  /// (the same piece, node and offset).
+  void value_near(double r_m, Hint& hint, double& b, double& db_dr) const {
+    if (hint.piece < pieces_.size()) {
+      const Piece& p = pieces_[hint.piece];
+      // value() takes the first piece whose end is not below r.
+      if (r_m >= p.r0 && r_m <= p.r1 && (hint.piece == 0 || pieces_[hint.piece - 1].r1 < r_m)) {
+        node_value(p, r_m, b, db_dr);
+        return;
+      }
+    }
+    lookup(r_m, hint, b, db_dr);
+  }
+  /// add() through value_near().
+  void add_near(double r_m, Hint& hint, double main_b_T, double main_db_dr, double main_db_dth, double threshold_T,
+                double& b, double& db_dr, double& db_dth) const;
+
  private:
   struct Piece {  // equally spaced nodes on [r0, r0 + (n - 1) h]
     double r0, r1, h, inv_h;
     std::vector<double> s, ds;
   };
   void build(const std::vector<TrimCoilField>& coils, const std::vector<size_t>& use, double r_lo_m, double r_hi_m);
+  /// value()'s search; the hint gets the piece found (or none).
+  void lookup(double r_m, Hint& hint, double& b, double& db_dr) const;
+  /// The table at r in piece p.
+  static void node_value(const Piece& p, double r_m, double& b, double& db_dr) {
+    const double t = (r_m - p.r0) * p.inv_h;
+    const size_t i = std::min(static_cast<size_t>(t), p.s.size() - 2);
+    b = hermite_inv(p.s[i], p.s[i + 1], p.ds[i], p.ds[i + 1], p.h, p.inv_h, t - static_cast<double>(i), db_dr);
+  }
   std::vector<Piece> pieces_;
   size_t ncoils_ = 0;
   double lo_ = 0, inv_bucket_ = 0;
