@@ -410,6 +410,8 @@ bool lane_step(AzParticle& p, double th, double h, int j0, const StageCells& sc,
     }
     FieldSample f;
     if (!m.map.sample_row_near(tab, t[0], (j0 + sc.dj[st]) % nt, sc.slot[st], p.cell, f)) return false;
+    // (add_to_main_lanes' expressions are add_to_main's, so a lane gets these numbers in a
+    // group; the loops over lanes would only lengthen a lone particle's chain.)
     if (rest) m.add_to_main(t[0], within_turn(th + kC[st] * h), f, cache.at(m, node, st), &p.coil_hints);
     if (!(1 - t[1] * t[1] - t[3] * t[3] > 0)) return false;
     fast_eom(t[0], t[1], t[2], t[3], f.bz_T, f.dbz_dr_T_m, f.dbz_dth_T, p.f.inv_brho, p.f.inv_v, k[st][0], k[st][1],
@@ -442,12 +444,14 @@ void group_step(AzParticle* const* L, int n, double th, double h, int j0, const 
   double y[5][kMaxLanes], k[kStages][5][kMaxLanes], t[5][kMaxLanes];
   double ib[kMaxLanes], iv[kMaxLanes], bz[kMaxLanes], br[kMaxLanes], bt[kMaxLanes];
   unsigned char good[kMaxLanes], noaz[kMaxLanes];
+  TrackModel::CoilHints* hints[kMaxLanes];
   for (int l = 0; l < n; ++l) {
     for (int i = 0; i < 5; ++i) y[i][l] = L[l]->y[static_cast<size_t>(i)];
     ib[l] = L[l]->f.inv_brho;
     iv[l] = L[l]->f.inv_v;
     good[l] = 1;
     noaz[l] = 0;
+    hints[l] = &L[l]->coil_hints;
   }
   for (int st = 0; st < kStages; ++st) {
     // t = y + sum_q (h a_q) k_q, summed in step_az's order.
@@ -468,13 +472,13 @@ void group_step(AzParticle* const* L, int n, double th, double h, int j0, const 
       if (!m.map.sample_row_near(tab, t[0][l], j, slot, L[l]->cell, f)) {
         good[l] = 0;
         f = FieldSample{};
-      } else if (rest) {
-        m.add_to_main(t[0][l], ths, f, terms, &L[l]->coil_hints);
       }
       bz[l] = f.bz_T;
       br[l] = f.dbz_dr_T_m;
       bt[l] = f.dbz_dth_T;
     }
+    // (A lane off the map gets finite numbers here, which it drops.)
+    if (rest) m.add_to_main_lanes(n, t[0], ths, bz, br, bt, terms, hints);
     for (int l = 0; l < n; ++l) noaz[l] |= !(1 - t[1][l] * t[1][l] - t[3][l] * t[3][l] > 0);
     // (A lane without azimuthal momentum left is dropped below, as step_az drops it.)
     for (int l = 0; l < n; ++l)

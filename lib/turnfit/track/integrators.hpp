@@ -35,7 +35,7 @@ TrackEnd track_azimuth(const TrackModel& m, const ParticleState& s0, const Track
                        std::vector<PathPoint>* path);
 
 /// The most particles the group stepper takes through a step together.
-constexpr int kMaxLanes = 16;
+constexpr int kMaxLanes = TrackModel::kMaxLanes;
 
 /// Where the group stepper puts one particle's records (kicks and path optional).
 struct GroupOutput {

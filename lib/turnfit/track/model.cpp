@@ -18,47 +18,6 @@ double ProbeLine::crossing_azimuth(double r_m) const {
   return std::remainder(phi_rad - std::asin(a_m / r_m), 2 * kPi);
 }
 
-double FieldEffects::sector_factor(double th, double& dfactor) const {
-  dfactor = 0;
-  const int n = static_cast<int>(sector_relative.size());
-  if (n == 0) return 1;
-  // Sector k is centred on azimuth (k - 1) pitch (the trim coils' convention, trimcoil.cpp):
-  // u is the azimuth from the centre of the sector j (0-based) that holds theta.
-  // (Multiplications by stored inverses and no integer modulo: this runs at every field
-  // sample of a machine with sector-strength effects, inside the step's dependency chain.)
-  double a = th + 0.5 * pitch_rad;
-  // In [0, 2 pi) (std::fmod is several times slower, and floor without SSE4.1 a dozen
-  // instructions: the fast steppers pass azimuths within a turn, which need no floor).
-  if (!(a >= 0 && a < 2 * kPi)) {
-    a -= 2 * kPi * std::floor(a * (1 / (2 * kPi)));
-    if (a >= 2 * kPi) a = 0;
-  }
-  const int j = std::min(static_cast<int>(a * inv_pitch_rad), n - 1);
-  const double u = a - (j + 0.5) * pitch_rad;
-  // Within half a switch width of the valley after sector j (u near +pitch/2) or before it
-  // (u near -pitch/2) the factor blends the two magnets; elsewhere it is sector j's alone.
-  const double h = half_transition_rad, half_pitch = 0.5 * pitch_rad;
-  const auto rel = [&](int k) { return sector_relative[static_cast<size_t>(k < 0 ? k + n : k >= n ? k - n : k)]; };
-  double lo, hi, x;
-  if (u > half_pitch - h) {
-    lo = rel(j);
-    hi = rel(j + 1);
-    x = (u - half_pitch) * inv_half_transition_rad;
-  } else if (u < h - half_pitch) {
-    lo = rel(j - 1);
-    hi = rel(j);
-    x = (u + half_pitch) * inv_half_transition_rad;
-  } else {
-    return 1 + rel(j);
-  }
-  if (x <= -1) return 1 + lo;
-  if (x >= 1) return 1 + hi;
-  const double t = 0.5 * (x + 1);
-  const double S = t * t * t * (t * (6 * t - 15) + 10);
-  dfactor = (hi - lo) * 15 * t * t * (1 - t) * (1 - t) * inv_half_transition_rad;
-  return 1 + lo + (hi - lo) * S;
-}
-
 double TrackModel::sector_centre(double r_m, double& dc_dr) const {
   const double x = (r_m - sector_r_mid_m) / sector_r_half_m;
   double c = 0, d = 0;
@@ -220,6 +179,100 @@ bool TrackModel::field_with_effects(double r_m, double th, FieldSample& out, con
     out.dbz_dth_T -= h.amplitude_T * g * h.n * sn;
   }
   return true;
+}
+
+void TrackModel::add_coils_lanes(int n, const double* r, double th, const double* centre, double* bz, double* br,
+                                 double* bt, CoilHints* const* hints) const {
+  if (summed_for_ != coils.size()) {  // add_coils' own fallback
+    for (int l = 0; l < n; ++l) {
+      const FieldSample main{bz[l], br[l], bt[l]};
+      FieldSample out = main;
+      add_coils(r[l], th, main, centre[l], out, hints[l]);
+      bz[l] = out.bz_T;
+      br[l] = out.dbz_dr_T_m;
+      bt[l] = out.dbz_dth_T;
+    }
+    return;
+  }
+  // add_coils lane by lane, table by table: each lane's sums in add_coils' order, on the main
+  // field as it came in (the threshold is on it).
+  double mb[kMaxLanes], mbr[kMaxLanes], mbt[kMaxLanes];
+  for (int l = 0; l < n; ++l) {
+    mb[l] = bz[l];
+    mbr[l] = br[l];
+    mbt[l] = bt[l];
+  }
+  if (!coil_sum.empty())
+    for (int l = 0; l < n; ++l)
+      coil_sum.add_near(r[l], hints[l]->all, mb[l], mbr[l], mbt[l], threshold_T, bz[l], br[l], bt[l]);
+  for (size_t k = 0; k < window_sums.size(); ++k) {
+    const WindowSum& w = window_sums[k];
+    const TrimCoilField& c = coils[w.window_of];
+    for (int l = 0; l < n; ++l) {
+      if (!c.in_azimuth(th, centre[l])) continue;
+      if (k < kHintedWindows)
+        w.sum.add_near(r[l], hints[l]->window[k], mb[l], mbr[l], mbt[l], threshold_T, bz[l], br[l], bt[l]);
+      else
+        w.sum.add(r[l], mb[l], mbr[l], mbt[l], threshold_T, bz[l], br[l], bt[l]);
+    }
+  }
+  for (size_t i : single_coils)
+    for (int l = 0; l < n; ++l)
+      coils[i].add(r[l], th, mb[l], mbr[l], mbt[l], threshold_T, bz[l], br[l], bt[l], centre[l]);
+}
+
+void TrackModel::add_to_main_lanes(int n, const double* r, double th, double* bz, double* br, double* bt,
+                                   const AzimuthTerms* terms, CoilHints* const* hints) const {
+  if (!effects.active) {
+    if (coils.empty() || no_coil_field()) return;
+    double centre[kMaxLanes];
+    double dc;
+    for (int l = 0; l < n; ++l) centre[l] = sector_windows ? sector_centre(r[l], dc) : 0.0;
+    add_coils_lanes(n, r, th, centre, bz, br, bt, hints);
+    return;
+  }
+  // field_with_effects, a stage at a time over the lanes.
+  double centre[kMaxLanes], dc[kMaxLanes];
+  for (int l = 0; l < n; ++l) {
+    centre[l] = 0;
+    dc[l] = 0;
+  }
+  if (sector_windows)
+    for (int l = 0; l < n; ++l) centre[l] = sector_centre(r[l], dc[l]);
+  if (!effects.sector_relative.empty()) {
+    double f[kMaxLanes], df[kMaxLanes];
+    for (int l = 0; l < n; ++l) f[l] = effects.sector_factor(th - centre[l], df[l]);
+    for (int l = 0; l < n; ++l) {
+      br[l] = br[l] * f[l] - bz[l] * df[l] * dc[l];
+      bt[l] = bt[l] * f[l] + bz[l] * df[l];
+      bz[l] *= f[l];
+    }
+  }
+  if (!coils.empty() && !no_coil_field()) add_coils_lanes(n, r, th, centre, bz, br, bt, hints);
+  for (size_t k = 0; k < effects.harmonics.size(); ++k) {
+    const auto& h = effects.harmonics[k];
+    double c, sn;
+    if (terms && k < kAzimuthHarmonics) {
+      c = terms->cos_h[k];
+      sn = terms->sin_h[k];
+    } else {
+      const double arg = h.n * (th - h.phase_rad);
+      c = std::cos(arg);
+      sn = std::sin(arg);
+    }
+    double g[kMaxLanes];
+    for (int l = 0; l < n; ++l) {
+      const double dr = r[l] - h.r0_m;
+      g[l] = h.inv_width2 == 0 ? 1.0 : std::exp(-0.5 * dr * dr * h.inv_width2);
+    }
+    for (int l = 0; l < n; ++l) {
+      const double dr = r[l] - h.r0_m;
+      const double b = h.amplitude_T * g[l] * c;
+      bz[l] += b;
+      br[l] -= b * dr * h.inv_width2;
+      bt[l] -= h.amplitude_T * g[l] * h.n * sn;
+    }
+  }
 }
 
 namespace {

@@ -1,8 +1,9 @@
 // Everything a tracker needs from a machine: total magnetic field, gaps, probes, particle.
 #pragma once
 
-#include <cmath>
+#include <algorithm>
 #include <array>
+#include <cmath>
 #include <map>
 #include <memory>
 #include <optional>
@@ -12,6 +13,7 @@
 #include "turnfit/field/field_map.hpp"
 #include "turnfit/field/opal_map.hpp"
 #include "turnfit/machine/machine.hpp"
+#include "turnfit/physics/particle.hpp"
 #include "turnfit/rf/cavity.hpp"
 #include "turnfit/trimcoil/trimcoil.hpp"
 
@@ -65,6 +67,48 @@ struct FieldEffects {
   /// add up to 1 at every azimuth.
   double sector_factor(double theta_rad, double& dfactor_dth) const;
 };
+
+// (Inline: the fast steppers call it at every field sample of a machine with sector-strength.)
+inline double FieldEffects::sector_factor(double th, double& dfactor) const {
+  dfactor = 0;
+  const int n = static_cast<int>(sector_relative.size());
+  if (n == 0) return 1;
+  // Sector k is centred on azimuth (k - 1) pitch (the trim coils' convention, trimcoil.cpp):
+  // u is the azimuth from the centre of the sector j (0-based) that holds theta.
+  // (Multiplications by stored inverses and no integer modulo: this runs at every field
+  // sample of a machine with sector-strength effects, inside the step's dependency chain.)
+  double a = th + 0.5 * pitch_rad;
+  // In [0, 2 pi) (std::fmod is several times slower, and floor without SSE4.1 a dozen
+  // instructions: the fast steppers pass azimuths within a turn, which need no floor).
+  if (!(a >= 0 && a < 2 * kPi)) {
+    a -= 2 * kPi * std::floor(a * (1 / (2 * kPi)));
+    if (a >= 2 * kPi) a = 0;
+  }
+  const int j = std::min(static_cast<int>(a * inv_pitch_rad), n - 1);
+  const double u = a - (j + 0.5) * pitch_rad;
+  // Within half a switch width of the valley after sector j (u near +pitch/2) or before it
+  // (u near -pitch/2) the factor blends the two magnets; elsewhere it is sector j's alone.
+  const double h = half_transition_rad, half_pitch = 0.5 * pitch_rad;
+  const auto rel = [&](int k) { return sector_relative[static_cast<size_t>(k < 0 ? k + n : k >= n ? k - n : k)]; };
+  double lo, hi, x;
+  if (u > half_pitch - h) {
+    lo = rel(j);
+    hi = rel(j + 1);
+    x = (u - half_pitch) * inv_half_transition_rad;
+  } else if (u < h - half_pitch) {
+    lo = rel(j - 1);
+    hi = rel(j);
+    x = (u + half_pitch) * inv_half_transition_rad;
+  } else {
+    return 1 + rel(j);
+  }
+  if (x <= -1) return 1 + lo;
+  if (x >= 1) return 1 + hi;
+  const double t = 0.5 * (x + 1);
+  const double S = t * t * t * (t * (6 * t - 15) + 10);
+  dfactor = (hi - lo) * 15 * t * t * (1 - t) * (1 - t) * inv_half_transition_rad;
+  return 1 + lo + (hi - lo) * S;
+}
 
 /// The machine as trackers see it.
 struct TrackModel {
@@ -142,6 +186,13 @@ struct TrackModel {
     const double centre = sector_windows ? sector_centre(r_m, dc) : 0.0;
     add_coils(r_m, theta_rad, main, centre, out, hints);
   }
+  /// add_to_main for the n (<= kMaxLanes) particles of a group at one azimuth th: main fields
+  /// bz, br, bt at radii r in, totals out, hints[l] each particle's coil hints. The same numbers
+  /// as add_to_main lane by lane (the same expressions in the same order), with the spiral's
+  /// centre line, the sector factor and the harmonics as loops over the lanes.
+  static constexpr int kMaxLanes = 16;
+  void add_to_main_lanes(int n, const double* r_m, double theta_rad, double* bz, double* br, double* bt,
+                         const AzimuthTerms* terms, CoilHints* const* hints) const;
   /// Whether field() is the main field alone (no effects, no coils).
   bool main_field_only() const { return !effects.active && (coils.empty() || no_coil_field()); }
   /// Whether the coils add nothing (every one at bmax 0, as sum_coils() found them).
@@ -154,6 +205,9 @@ struct TrackModel {
                           CoilHints* hints) const;
   void add_coils(double r_m, double theta_rad, const FieldSample& main, double sector_centre_rad, FieldSample& out,
                  CoilHints* hints) const;
+  /// add_coils for the lanes of add_to_main_lanes (each lane's centre line given).
+  void add_coils_lanes(int n, const double* r_m, double theta_rad, const double* centre, double* bz, double* br,
+                       double* bt, CoilHints* const* hints) const;
   size_t summed_for_ = static_cast<size_t>(-1);  // coils.size() when sum_coils() ran
 };
 

@@ -3,13 +3,32 @@
 #pragma once
 
 #include <algorithm>
+#include <cmath>
 #include <string>
 #include <vector>
 
 #include "turnfit/machine/machine.hpp"
 #include "turnfit/physics/hermite.hpp"
+#include "turnfit/physics/particle.hpp"
 
 namespace turnfit {
+
+/// Adds a coil field c(r) (dc/dr) to b and its derivatives. Below the threshold the coil
+/// fades linearly with the main field (OPAL's smooth transition).
+inline void add_faded(double c, double dc_dr, double main_b, double main_db_dr, double main_db_dth, double threshold_T,
+               double& b, double& db_dr, double& db_dth) {
+  double w = 1, dw_dr = 0, dw_dth = 0;
+  const double amain = std::fabs(main_b);
+  if (threshold_T > 0 && amain < threshold_T) {
+    w = amain / threshold_T;
+    const double sg = main_b >= 0 ? 1.0 : -1.0;
+    dw_dr = sg * main_db_dr / threshold_T;
+    dw_dth = sg * main_db_dth / threshold_T;
+  }
+  b += c * w;
+  db_dr += dc_dr * w + c * dw_dr;
+  db_dth += c * dw_dth;
+}
 
 /// A trim coil's table (type table): radii [mm], strictly increasing, and shape values.
 struct CoilTable {
@@ -187,5 +206,36 @@ TrimCoil bfield_from_phase(const TrimCoil& phase);
 /// coefficients num (a_0 + a_1 x + ...) and den (b_0 + ...; empty: g = 1).
 void rational(const std::vector<double>& num, const std::vector<double>& den, double x, double& q,
               double& dq, double& d2q);
+
+// (Inline: the fast steppers call these at every field sample.)
+inline bool TrimCoilField::in_azimuth(double th, double sector_offset) const {
+  if (everywhere_) return true;
+  // (Stored inverses instead of divisions: a tracker tests this at every field sample of a
+  // coil on some sectors.)
+  const double two_pi = 2 * kPi, inv_two_pi = 1 / two_pi;
+  if (window_) {
+    // (Azimuths within a turn, as the fast steppers pass them, need no floor.)
+    const double t = th >= 0 && th < two_pi ? th : th - two_pi * std::floor(th * inv_two_pi);
+    const bool inside = phi_a_ <= phi_b_ ? (t >= phi_a_ && t <= phi_b_) : (t >= phi_a_ || t <= phi_b_);
+    if (!inside) return false;
+  }
+  if (in_sector_.empty()) return true;
+  // Sector k is centred on azimuth (k - 1) 360/N deg from sector 1's centre line (theta = 0
+  // without a spiral): x counts sector pitches from sector 1's start edge, modulo N.
+  const double n = symmetry_;
+  double x = (th - sector_offset) * (n * inv_two_pi) + 0.5;
+  if (!(x >= 0 && x < n)) x -= n * std::floor(x * (1 / n));
+  int k = static_cast<int>(x);
+  if (k >= symmetry_) k -= symmetry_;
+  return in_sector_[static_cast<size_t>(k)] != 0;
+}
+
+inline void TrimCoilSum::add_near(double r_m, Hint& hint, double main_b, double main_db_dr, double main_db_dth,
+                           double threshold_T, double& b, double& db_dr, double& db_dth) const {
+  double s, ds;
+  value_near(r_m, hint, s, ds);
+  if (s == 0 && ds == 0) return;
+  add_faded(s, ds, main_b, main_db_dr, main_db_dth, threshold_T, b, db_dr, db_dth);
+}
 
 }  // namespace turnfit
