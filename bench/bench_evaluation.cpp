@@ -21,6 +21,7 @@
 
 #include "turnfit/machine/machine.hpp"
 #include "turnfit/optimize/problem_file.hpp"
+#include "turnfit/io/parallel.hpp"
 #include "turnfit/optimize/turn_problem.hpp"
 #include "turnfit/physics/particle.hpp"
 #include "turnfit/track/model.hpp"
@@ -136,6 +137,45 @@ int main(int argc, char** argv) {
   std::printf("one evaluation of the %zu-variable problem (TurnPatternProblem::simulate), the reference particle: "
               "%.2f ms (reference stepper %.2f ms, %.2fx); worst turn %.1e mm against its own turns\n",
               p->n_variables(), t_ev, t_ev_ref, t_ev_ref / t_ev, linf);
+  // A forward-difference Jacobian's 49 designs on 2 threads: one simulate() at a time per
+  // thread (as localsearch did before issue 17's third session) against simulate_many in
+  // chunks of at most 16 (what localsearch does now), and that the two agree bit for bit.
+  {
+    std::vector<std::vector<double>> xs = {x};
+    for (size_t j = 0; j < x.size(); ++j) {
+      std::vector<double> v = x;
+      v[j] += 1e-6 * (p->upper()[j] - p->lower()[j]);
+      xs.push_back(v);
+    }
+    const unsigned threads = 2;
+    std::vector<TurnPatternResult> one(xs.size()), many(xs.size());
+    std::vector<double> t_one, t_many;
+    for (int k = 0; k < std::max(3, repeat / 3); ++k) {
+      auto a = Clock::now();
+      parallel_for(xs.size(), threads, [&](size_t i, unsigned) { one[i] = p->simulate(xs[i]); });
+      t_one.push_back(seconds(a) * 1e3);
+      a = Clock::now();
+      const size_t chunks = std::max<size_t>(threads, (xs.size() + 15) / 16);
+      parallel_for(chunks, threads, [&](size_t c, unsigned) {
+        const size_t b = c * xs.size() / chunks, e = (c + 1) * xs.size() / chunks;
+        const std::vector<std::vector<double>> part(xs.begin() + static_cast<long>(b), xs.begin() + static_cast<long>(e));
+        std::vector<TurnPatternResult> r = p->simulate_many(part);
+        for (size_t i = b; i < e; ++i) many[i] = std::move(r[i - b]);
+      });
+      t_many.push_back(seconds(a) * 1e3);
+    }
+    std::sort(t_one.begin(), t_one.end());
+    std::sort(t_many.begin(), t_many.end());
+    bool same = true;
+    for (size_t i = 0; i < xs.size(); ++i) {
+      same = same && one[i].ok == many[i].ok && one[i].delta_mm.size() == many[i].delta_mm.size();
+      for (size_t k = 0; same && k < one[i].delta_mm.size(); ++k)
+        same = one[i].delta_mm[k] == many[i].delta_mm[k] || (std::isnan(one[i].delta_mm[k]) && std::isnan(many[i].delta_mm[k]));
+    }
+    std::printf("a Jacobian's %zu designs on %u threads: one at a time %.1f ms, together (simulate_many) %.1f ms, "
+                "%.2fx; %s\n", xs.size(), threads, t_one[t_one.size() / 2], t_many[t_many.size() / 2],
+                t_one[t_one.size() / 2] / t_many[t_many.size() / 2], same ? "the same residuals bit for bit" : "RESIDUALS DIFFER");
+  }
   // The bunch's centre (the default when the machine has a bunch: the reference and 13
   // quadrature nodes, on all threads), as the main job's fit evaluates it.
   {

@@ -163,6 +163,57 @@ TEST_CASE("turn-pattern problem: \"paper\" takes ring8's 48 variables, bounds fr
   CHECK(bad.reason.find("outside its bounds") != std::string::npos);
 }
 
+TEST_CASE("turn-pattern problem: designs simulated together give what each gives alone, bit for bit",
+          "[turn-problem]") {
+  // A finite-difference Jacobian's designs go through simulate_many: their reference particles
+  // share the grid steps (the group stepper, a model per design). 20 designs (two groups): the
+  // start, each of the 48 variables of "paper" moved in turn (trim coils, voltages, phases,
+  // probes, injection), one design outside its bounds (refused, with simulate's reason) and
+  // one that loses its particle.
+  TempDir tmp;
+  auto p = load_turn_problem(tmp.file("p.json", problem_text(nominal_peaks(tmp), "\"paper\"")));
+  const std::vector<double> x0 = p->start();
+  std::vector<std::vector<double>> xs = {x0};
+  for (size_t j = 0; xs.size() < 18; j += 3) {
+    std::vector<double> x = x0;
+    x[j] = x0[j] + 0.2 * (p->upper()[j] - x0[j]);
+    xs.push_back(x);
+  }
+  std::vector<double> out_of_bounds = x0;
+  out_of_bounds[0] = p->upper()[0] + 1;
+  xs.push_back(out_of_bounds);
+  std::vector<double> lost = x0;
+  for (size_t j = 0; j < lost.size(); ++j)  // every coil at its upper bound: the turns run off the map
+    if (p->variables()[j].name.rfind("tc", 0) == 0) lost[j] = p->upper()[j];
+  xs.push_back(lost);
+  const std::vector<TurnPatternResult> together = p->simulate_many(xs);
+  REQUIRE(together.size() == xs.size());
+  int failed = 0;
+  for (size_t i = 0; i < xs.size(); ++i) {
+    INFO("design " << i);
+    const TurnPatternResult alone = p->simulate(xs[i]);
+    REQUIRE(together[i].ok == alone.ok);
+    CHECK(together[i].reason == alone.reason);
+    failed += !alone.ok;
+    if (!alone.ok) continue;
+    CHECK(together[i].end.status == alone.end.status);
+    REQUIRE(together[i].simulated.points.size() == alone.simulated.points.size());
+    for (size_t k = 0; k < alone.simulated.points.size(); ++k)
+      CHECK(together[i].simulated.points[k].r_mm == alone.simulated.points[k].r_mm);
+    REQUIRE(together[i].delta_mm.size() == alone.delta_mm.size());
+    // (A turn the design does not reach has no residual: NaN in both.)
+    const auto same = [](double a, double b) { return a == b || (std::isnan(a) && std::isnan(b)); };
+    for (size_t k = 0; k < alone.delta_mm.size(); ++k) CHECK(same(together[i].delta_mm[k], alone.delta_mm[k]));
+    for (size_t k = 0; k < alone.objectives.size(); ++k)
+      CHECK(same(together[i].objectives[k].value, alone.objectives[k].value));
+  }
+  CHECK(failed == 1);
+  CHECK(together[18].reason.find("outside its bounds") != std::string::npos);
+  CHECK(together[19].end.lost);
+  // The designs moved something: no two give the same turns.
+  CHECK(together[1].delta_mm != together[0].delta_mm);
+}
+
 TEST_CASE("turn-pattern problem: bad files are named with their key", "[turn-problem]") {
   TempDir tmp;
   const std::string peaks = nominal_peaks(tmp);

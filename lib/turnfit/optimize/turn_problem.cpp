@@ -338,41 +338,57 @@ Machine TurnPatternProblem::machine_at(const std::vector<double>& x) const {
 }
 
 TurnPatternResult TurnPatternProblem::simulate(const std::vector<double>& x) const {
-  TurnPatternResult r;
-  std::vector<TurnRecord> turns;
-  std::vector<std::string> probe_names;
-  try {
-    if (x.size() != vars_.size()) throw Error(ExitCode::software, "a design of the wrong size");
-    const Machine m = machine_at(x);
-    const TrackModel model = make_track_model(m, {}, &files_);
-    for (const auto& p : model.probes) probe_names.push_back(p.name);
-    const ParticleState s0 = injection_state(effective_injection(m), m.particle.mass_MeV);
-    r.end = track_particle(model, s0, settings_, turns);
-  } catch (const Error& e) {
-    r.reason = e.what();
-    return r;
+  return std::move(simulate_many({x})[0]);
+}
+
+std::vector<TurnPatternResult> TurnPatternProblem::simulate_many(const std::vector<std::vector<double>>& xs) const {
+  std::vector<TurnPatternResult> out(xs.size());
+  // Each design's model and reference particle; a design that cannot be built says why.
+  std::vector<std::unique_ptr<TrackModel>> models;
+  std::vector<const TrackModel*> model_of;
+  std::vector<ParticleState> starts;
+  std::vector<size_t> design;
+  for (size_t i = 0; i < xs.size(); ++i) {
+    try {
+      if (xs[i].size() != vars_.size()) throw Error(ExitCode::software, "a design of the wrong size");
+      const Machine m = machine_at(xs[i]);
+      auto model = std::make_unique<TrackModel>(make_track_model(m, {}, &files_));
+      starts.push_back(injection_state(effective_injection(m), m.particle.mass_MeV));
+      model_of.push_back(model.get());
+      models.push_back(std::move(model));
+      design.push_back(i);
+    } catch (const Error& e) {
+      out[i].reason = e.what();
+    }
   }
-  r.simulated.source = "<simulated>";
-  r.simulated.format = "turns";
-  r.simulated.probes = probe_names;
-  r.simulated.points.reserve(turns.size());
+  std::vector<std::vector<TurnRecord>> turns(starts.size());
+  std::vector<TrackEnd> ends(starts.size());
+  track_particles(model_of.data(), starts.data(), starts.size(), settings_, turns.data(), ends.data());
   const auto& shift = shift_.shift_mm;
-  for (const auto& t : turns) {
-    TurnPoint pt;
-    pt.probe = t.probe;
-    pt.turn = t.turn;
-    pt.r_mm = t.r_mm;
-    // The bunch's centre where the shift is known (at the shift's design every node crossed here).
-    const auto p = static_cast<size_t>(t.probe), k = static_cast<size_t>(t.turn - 1);
-    if (p < shift.size() && k < shift[p].size() && !std::isnan(shift[p][k])) pt.r_mm += shift[p][k];
-    r.simulated.points.push_back(pt);
+  for (size_t k = 0; k < design.size(); ++k) {
+    TurnPatternResult& r = out[design[k]];
+    r.end = ends[k];
+    r.simulated.source = "<simulated>";
+    r.simulated.format = "turns";
+    for (const auto& p : models[k]->probes) r.simulated.probes.push_back(p.name);
+    r.simulated.points.reserve(turns[k].size());
+    for (const auto& t : turns[k]) {
+      TurnPoint pt;
+      pt.probe = t.probe;
+      pt.turn = t.turn;
+      pt.r_mm = t.r_mm;
+      // The bunch's centre where the shift is known (at the shift's design every node crossed here).
+      const auto p = static_cast<size_t>(t.probe), j = static_cast<size_t>(t.turn - 1);
+      if (p < shift.size() && j < shift[p].size() && !std::isnan(shift[p][j])) pt.r_mm += shift[p][j];
+      r.simulated.points.push_back(pt);
+    }
+    finish_turn_table(r.simulated);
+    r.violation = match_turns(measured_, r.simulated, r.delta_mm, r.matched);
+    r.objectives.resize(plan_.items.size());
+    evaluate_objectives(plan_, r.delta_mm.data(), r.matched.data(), r.objectives.data());
+    r.ok = true;
   }
-  finish_turn_table(r.simulated);
-  r.violation = match_turns(measured_, r.simulated, r.delta_mm, r.matched);
-  r.objectives.resize(plan_.items.size());
-  evaluate_objectives(plan_, r.delta_mm.data(), r.matched.data(), r.objectives.data());
-  r.ok = true;
-  return r;
+  return out;
 }
 
 CentroidShift TurnPatternProblem::centroid_shift(const std::vector<double>& x, unsigned threads) const {

@@ -83,6 +83,10 @@ class TurnPatternProblem : public Problem {
 
   /// The design's turns compared with the measurement.
   TurnPatternResult simulate(const std::vector<double>& x) const;
+  /// simulate() of several designs, their reference particles tracked together (the group
+  /// stepper with a model per design, several times the throughput of one at a time): what
+  /// simulate() gives each, bit for bit. For finite-difference Jacobians. Thread-safe.
+  std::vector<TurnPatternResult> simulate_many(const std::vector<std::vector<double>>& xs) const;
 
   /// The machine as loaded (variables at their start values).
   const Machine& machine() const { return machine_; }

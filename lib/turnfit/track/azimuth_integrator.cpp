@@ -429,17 +429,21 @@ bool lane_step(AzParticle& p, double th, double h, int j0, const StageCells& sc,
 /// row table; ok[l] false for a lane a stage of which left the map or lost its azimuthal
 /// momentum (its state untouched). The arithmetic is step_az's, lane by lane.
 void group_step(AzParticle* const* L, int n, double th, double h, int j0, const StageCells& sc,
-                const FieldRowTable& tab, TermCache& cache, long long node, bool* ok) {
+                const FieldRowTable& tab, TermCache* const* cache, long long node, bool* ok) {
   if (n == 1) {
-    ok[0] = lane_step(*L[0], th, h, j0, sc, tab, cache, node);
+    ok[0] = lane_step(*L[0], th, h, j0, sc, tab, *cache[0], node);
     return;
   }
   // Structure of arrays over the lanes: the stage states and the equations of motion are loops
   // over lanes that the compiler vectorizes; only the field samples go lane by lane. The
   // expressions are lane_step's, term for term (so a lane's numbers do not depend on whether it
   // stepped alone or in a group).
+  // The lanes' models share the map (track_azimuth_group); their coils and effects may differ
+  // (an optimizer's designs), and then each lane adds its own as lane_step does.
   const TrackModel& m = L[0]->m;
-  const bool rest = !m.main_field_only();
+  bool one_model = true;
+  for (int l = 1; l < n; ++l) one_model = one_model && &L[l]->m == &m;
+  const bool rest = !one_model || !m.main_field_only();
   const int nt = tab.ntheta;
   double y[5][kMaxLanes], k[kStages][5][kMaxLanes], t[5][kMaxLanes];
   double ib[kMaxLanes], iv[kMaxLanes], bz[kMaxLanes], br[kMaxLanes], bt[kMaxLanes];
@@ -465,7 +469,7 @@ void group_step(AzParticle* const* L, int n, double th, double h, int j0, const 
     const double ths = within_turn(th + kC[st] * h);
     const int j = (j0 + sc.dj[st]) % nt;
     const int slot = sc.slot[st];
-    const TrackModel::AzimuthTerms* terms = rest ? cache.at(m, node, st) : nullptr;
+    const TrackModel::AzimuthTerms* terms = rest && one_model ? cache[0]->at(m, node, st) : nullptr;
     for (int l = 0; l < n; ++l) {
       FieldSample f;
       // The cell guess as lane_step keeps it: a lane's numbers do not depend on its group.
@@ -478,7 +482,19 @@ void group_step(AzParticle* const* L, int n, double th, double h, int j0, const 
       bt[l] = f.dbz_dth_T;
     }
     // (A lane off the map gets finite numbers here, which it drops.)
-    if (rest) m.add_to_main_lanes(n, t[0], ths, bz, br, bt, terms, hints);
+    if (rest && one_model) {
+      m.add_to_main_lanes(n, t[0], ths, bz, br, bt, terms, hints);
+    } else if (rest) {
+      for (int l = 0; l < n; ++l) {
+        const TrackModel& ml = L[l]->m;
+        if (ml.main_field_only()) continue;
+        FieldSample f{bz[l], br[l], bt[l]};
+        ml.add_to_main(t[0][l], ths, f, cache[l]->at(ml, node, st), hints[l]);
+        bz[l] = f.bz_T;
+        br[l] = f.dbz_dr_T_m;
+        bt[l] = f.dbz_dth_T;
+      }
+    }
     for (int l = 0; l < n; ++l) noaz[l] |= !(1 - t[1][l] * t[1][l] - t[3][l] * t[3][l] > 0);
     // (A lane without azimuthal momentum left is dropped below, as step_az drops it.)
     for (int l = 0; l < n; ++l)
@@ -514,23 +530,55 @@ TrackEnd track_azimuth(const TrackModel& m, const ParticleState& s0, const Track
 
 void track_azimuth_group(const TrackModel& m, const ParticleState* s0, size_t n, const TrackSettings& st,
                          GroupOutput* out) {
+  std::vector<const TrackModel*> models(n, &m);
+  track_azimuth_group(models.data(), s0, n, st, out);
+}
+
+namespace {
+/// Whether two models' main fields are one map (copies share its values and row tables), so
+/// their particles can go through grid steps together.
+bool same_main_field(const TrackModel& a, const TrackModel& b) {
+  return &a == &b || (!a.opal_map && !b.opal_map && &a.map.values() == &b.map.values() &&
+                      a.map.grid().dtheta_rad() == b.map.grid().dtheta_rad() &&
+                      a.map.grid().theta_min_rad() == b.map.grid().theta_min_rad());
+}
+}  // namespace
+
+void track_azimuth_group(const TrackModel* const* ms, const ParticleState* s0, size_t n, const TrackSettings& st,
+                         GroupOutput* out) {
   if (n == 0) return;
   if (n > static_cast<size_t>(kMaxLanes)) {
     for (size_t b = 0; b < n; b += kMaxLanes)
-      track_azimuth_group(m, s0 + b, std::min<size_t>(kMaxLanes, n - b), st, out + b);
+      track_azimuth_group(ms + b, s0 + b, std::min<size_t>(kMaxLanes, n - b), st, out + b);
     return;
   }
+  const TrackModel& m = *ms[0];
   std::vector<std::unique_ptr<AzParticle>> lane;
   for (size_t l = 0; l < n; ++l) {
-    lane.push_back(std::make_unique<AzParticle>(m, s0[l], st, out[l].turns, out[l].kicks, out[l].path));
+    lane.push_back(std::make_unique<AzParticle>(*ms[l], s0[l], st, out[l].turns, out[l].kicks, out[l].path));
     lane.back()->landing_tol = 1e-12;
   }
-  // Lanes go through the same grid steps only from one azimuth; otherwise one group each.
-  for (size_t l = 1; l < n; ++l)
-    if (lane[l]->th != lane[0]->th) {
-      for (size_t q = 0; q < n; ++q) track_azimuth_group(m, s0 + q, 1, st, out + q);
-      return;
+  // Lanes go through the same grid steps only from one azimuth and on one map: otherwise the
+  // lanes that can go together (an optimizer's designs that move the injection azimuth do not)
+  // go as groups of their own.
+  std::vector<size_t> with_first, rest;
+  for (size_t l = 0; l < n; ++l)
+    (lane[l]->th == lane[0]->th && same_main_field(*ms[l], m) ? with_first : rest).push_back(l);
+  if (!rest.empty()) {
+    lane.clear();
+    for (const auto* part : {&with_first, &rest}) {
+      std::vector<const TrackModel*> pm;
+      std::vector<ParticleState> ps;
+      std::vector<GroupOutput> po;
+      for (size_t l : *part) {
+        pm.push_back(ms[l]);
+        ps.push_back(s0[l]);
+        po.push_back(out[l]);
+      }
+      track_azimuth_group(pm.data(), ps.data(), pm.size(), st, po.data());
     }
+    return;
+  }
   const PolarGrid& g = m.map.grid();
   const double cell = g.dtheta_rad(), dnode = lane[0]->dnode, node0 = lane[0]->node0;
   const double cells = dnode / cell;
@@ -545,7 +593,19 @@ void track_azimuth_group(const TrackModel& m, const ParticleState* s0, size_t n,
     tab = m.map.row_table(sc.v);
   }
   const int nt = g.ntheta;
-  TermCache cache(m, node0, dnode);
+  // One cache of azimuth terms per model (the harmonics are the model's).
+  std::vector<std::unique_ptr<TermCache>> caches;
+  std::vector<const TrackModel*> cached;
+  TermCache* lane_cache[kMaxLanes];
+  for (size_t l = 0; l < n; ++l) {
+    const size_t c = static_cast<size_t>(std::find(cached.begin(), cached.end(), ms[l]) - cached.begin());
+    if (c == cached.size()) {
+      cached.push_back(ms[l]);
+      caches.push_back(std::make_unique<TermCache>(*ms[l], node0, dnode));
+    }
+    lane_cache[l] = caches[c].get();
+  }
+  TermCache* group_cache[kMaxLanes];
   AzParticle* group[kMaxLanes];
   bool ok[kMaxLanes];
   double th = lane[0]->th;
@@ -565,6 +625,7 @@ void track_azimuth_group(const TrackModel& m, const ParticleState* s0, size_t n,
         if (s > stop) break;
         const int which = p->next_event(s);
         if (which < 0 && grid_step && p->th == th) {
+          group_cache[ng] = lane_cache[&p - lane.data()];
           group[ng++] = p.get();
           break;
         }
@@ -576,7 +637,7 @@ void track_azimuth_group(const TrackModel& m, const ParticleState* s0, size_t n,
       const long long node = static_cast<long long>(std::floor((th - node0) / dnode + 0.5));
       int j0 = static_cast<int>((node * cells_per_step) % nt);
       if (j0 < 0) j0 += nt;
-      group_step(group, ng, th, stop - th, j0, sc, *tab, cache, node, ok);
+      group_step(group, ng, th, stop - th, j0, sc, *tab, group_cache, node, ok);
       for (int l = 0; l < ng; ++l) {
         AzParticle& p = *group[l];
         if (!ok[l]) {

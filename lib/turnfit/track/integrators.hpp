@@ -53,6 +53,11 @@ struct GroupOutput {
 /// another order), and do not depend on which particles share its group.
 void track_azimuth_group(const TrackModel& m, const ParticleState* s0, size_t n, const TrackSettings& st,
                          GroupOutput* out);
+/// The same with a model per particle (ms[i] for s0[i]: an optimizer's designs). Particles
+/// whose models share one main field map (copies of one map) go through the grid steps
+/// together, each with its own coils, effects, gaps and probes.
+void track_azimuth_group(const TrackModel* const* ms, const ParticleState* s0, size_t n, const TrackSettings& st,
+                         GroupOutput* out);
 
 /// RK4 in time with a fixed number of steps per turn (OPAL-cycl's scheme).
 TrackEnd track_time(const TrackModel& m, const ParticleState& s0, const TrackSettings& st,

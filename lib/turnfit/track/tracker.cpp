@@ -93,4 +93,15 @@ void track_particles(const TrackModel& model, const ParticleState* starts, size_
   detail::track_azimuth_group(model, starts, n, settings, out.data());
 }
 
+void track_particles(const TrackModel* const* models, const ParticleState* starts, size_t n,
+                     const TrackSettings& settings, std::vector<TurnRecord>* turns, TrackEnd* ends) {
+  if (settings.integrator == "rk4" || settings.reference_stepper) {
+    for (size_t i = 0; i < n; ++i) ends[i] = track_particle(*models[i], starts[i], settings, turns[i]);
+    return;
+  }
+  std::vector<detail::GroupOutput> out(n);
+  for (size_t i = 0; i < n; ++i) out[i] = {&turns[i], nullptr, nullptr, &ends[i]};
+  detail::track_azimuth_group(models, starts, n, settings, out.data());
+}
+
 }  // namespace turnfit

@@ -124,4 +124,11 @@ TrackEnd track_particle(const TrackModel& model, const ParticleState& start, con
 void track_particles(const TrackModel& model, const ParticleState* starts, size_t n, const TrackSettings& settings,
                      std::vector<TurnRecord>* turns, TrackEnd* ends);
 
+/// track_particles with a model per particle (models[i] for starts[i]): an optimizer's designs.
+/// Particles whose models share one field map (copies of one map, as make_track_model makes
+/// them from one ModelFiles) are stepped together; each one's records are what track_particle
+/// gives it with its model alone, bit for bit.
+void track_particles(const TrackModel* const* models, const ParticleState* starts, size_t n,
+                     const TrackSettings& settings, std::vector<TurnRecord>* turns, TrackEnd* ends);
+
 }  // namespace turnfit

@@ -347,6 +347,14 @@ void TrimCoilSum::build(const std::vector<TrimCoilField>& coils, const std::vect
         p.ds[j] += coils[i].coil_.bmax_T * d;
       }
     }
+    p.poly.resize(4 * (p.s.size() - 1));
+    for (size_t j = 0; j + 1 < p.s.size(); ++j) {
+      const double y0 = p.s[j], y1 = p.s[j + 1], m0 = p.h * p.ds[j], m1 = p.h * p.ds[j + 1];
+      p.poly[4 * j] = y0;
+      p.poly[4 * j + 1] = m0;
+      p.poly[4 * j + 2] = 3 * (y1 - y0) - 2 * m0 - m1;
+      p.poly[4 * j + 3] = 2 * (y0 - y1) + m0 + m1;
+    }
     pieces_.push_back(std::move(p));
   }
   if (pieces_.empty()) return;
