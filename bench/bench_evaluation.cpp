@@ -19,9 +19,9 @@
 #include <string>
 #include <vector>
 
+#include "turnfit/io/parallel.hpp"
 #include "turnfit/machine/machine.hpp"
 #include "turnfit/optimize/problem_file.hpp"
-#include "turnfit/io/parallel.hpp"
 #include "turnfit/optimize/turn_problem.hpp"
 #include "turnfit/physics/particle.hpp"
 #include "turnfit/track/model.hpp"

@@ -167,18 +167,27 @@ TEST_CASE("turn-pattern problem: designs simulated together give what each gives
           "[turn-problem]") {
   // A finite-difference Jacobian's designs go through simulate_many: their reference particles
   // share the grid steps (the group stepper, a model per design). 20 designs (two groups): the
-  // start, each of the 48 variables of "paper" moved in turn (trim coils, voltages, phases,
-  // probes, injection), one design outside its bounds (refused, with simulate's reason) and
-  // one that loses its particle.
+  // start, every third of the 48 variables of "paper" moved (trim coils, voltages, phases,
+  // probes, injection), the injection angle moved (its particle starts at another azimuth: a
+  // group of its own), one design outside its bounds (refused, with simulate's reason) and one
+  // that loses its particle.
   TempDir tmp;
   auto p = load_turn_problem(tmp.file("p.json", problem_text(nominal_peaks(tmp), "\"paper\"")));
   const std::vector<double> x0 = p->start();
+  REQUIRE(x0.size() == 48);
   std::vector<std::vector<double>> xs = {x0};
-  for (size_t j = 0; xs.size() < 18; j += 3) {
+  auto moved = [&](size_t j) {
     std::vector<double> x = x0;
     x[j] = x0[j] + 0.2 * (p->upper()[j] - x0[j]);
-    xs.push_back(x);
-  }
+    return x;
+  };
+  for (size_t j = 0; j < x0.size(); j += 3) xs.push_back(moved(j));
+  size_t phi = x0.size();
+  for (size_t j = 0; j < x0.size(); ++j)
+    if (p->variables()[j].name == "phiinit") phi = j;
+  REQUIRE(phi < x0.size());
+  REQUIRE(phi % 3 != 0);  // not among the designs above
+  xs.push_back(moved(phi));
   std::vector<double> out_of_bounds = x0;
   out_of_bounds[0] = p->upper()[0] + 1;
   xs.push_back(out_of_bounds);
@@ -186,6 +195,7 @@ TEST_CASE("turn-pattern problem: designs simulated together give what each gives
   for (size_t j = 0; j < lost.size(); ++j)  // every coil at its upper bound: the turns run off the map
     if (p->variables()[j].name.rfind("tc", 0) == 0) lost[j] = p->upper()[j];
   xs.push_back(lost);
+  REQUIRE(xs.size() == 20);
   const std::vector<TurnPatternResult> together = p->simulate_many(xs);
   REQUIRE(together.size() == xs.size());
   int failed = 0;
@@ -206,12 +216,12 @@ TEST_CASE("turn-pattern problem: designs simulated together give what each gives
     for (size_t k = 0; k < alone.delta_mm.size(); ++k) CHECK(same(together[i].delta_mm[k], alone.delta_mm[k]));
     for (size_t k = 0; k < alone.objectives.size(); ++k)
       CHECK(same(together[i].objectives[k].value, alone.objectives[k].value));
+    // Each moved design gives turns of its own (a lane that took another's model would not).
+    if (i > 0 && i < 18) CHECK(together[i].delta_mm != together[0].delta_mm);
   }
   CHECK(failed == 1);
   CHECK(together[18].reason.find("outside its bounds") != std::string::npos);
   CHECK(together[19].end.lost);
-  // The designs moved something: no two give the same turns.
-  CHECK(together[1].delta_mm != together[0].delta_mm);
 }
 
 TEST_CASE("turn-pattern problem: bad files are named with their key", "[turn-problem]") {

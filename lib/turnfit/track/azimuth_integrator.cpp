@@ -481,13 +481,16 @@ void group_step(AzParticle* const* L, int n, double th, double h, int j0, const 
       br[l] = f.dbz_dr_T_m;
       bt[l] = f.dbz_dth_T;
     }
-    // (A lane off the map gets finite numbers here, which it drops.)
     if (rest && one_model) {
-      m.add_to_main_lanes(n, t[0], ths, bz, br, bt, terms, hints);
+      // A lane off the map (its radius may not even be finite) is given the map's inner edge
+      // instead: the effects get a radius they can take, and the lane drops what they give.
+      double r[kMaxLanes];
+      for (int l = 0; l < n; ++l) r[l] = good[l] ? t[0][l] : m.map.grid().r_min_m();
+      m.add_to_main_lanes(n, r, ths, bz, br, bt, terms, hints);
     } else if (rest) {
       for (int l = 0; l < n; ++l) {
         const TrackModel& ml = L[l]->m;
-        if (ml.main_field_only()) continue;
+        if (!good[l] || ml.main_field_only()) continue;
         FieldSample f{bz[l], br[l], bt[l]};
         ml.add_to_main(t[0][l], ths, f, cache[l]->at(ml, node, st), hints[l]);
         bz[l] = f.bz_T;

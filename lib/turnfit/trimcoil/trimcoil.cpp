@@ -405,5 +405,4 @@ void TrimCoilSum::add(double r_m, double main_b, double main_db_dr, double main_
   add_faded(s, ds, main_b, main_db_dr, main_db_dth, threshold_T, b, db_dr, db_dth);
 }
 
-
 }  // namespace turnfit

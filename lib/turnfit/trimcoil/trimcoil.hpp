@@ -8,7 +8,6 @@
 #include <vector>
 
 #include "turnfit/machine/machine.hpp"
-#include "turnfit/physics/hermite.hpp"
 #include "turnfit/physics/particle.hpp"
 
 namespace turnfit {
