@@ -158,7 +158,8 @@ int main(int argc, char** argv) {
       const size_t chunks = std::max<size_t>(threads, (xs.size() + 15) / 16);
       parallel_for(chunks, threads, [&](size_t c, unsigned) {
         const size_t b = c * xs.size() / chunks, e = (c + 1) * xs.size() / chunks;
-        const std::vector<std::vector<double>> part(xs.begin() + static_cast<long>(b), xs.begin() + static_cast<long>(e));
+        const std::vector<std::vector<double>> part(xs.begin() + static_cast<long>(b),
+                                                    xs.begin() + static_cast<long>(e));
         std::vector<TurnPatternResult> r = p->simulate_many(part);
         for (size_t i = b; i < e; ++i) many[i] = std::move(r[i - b]);
       });
@@ -170,11 +171,13 @@ int main(int argc, char** argv) {
     for (size_t i = 0; i < xs.size(); ++i) {
       same = same && one[i].ok == many[i].ok && one[i].delta_mm.size() == many[i].delta_mm.size();
       for (size_t k = 0; same && k < one[i].delta_mm.size(); ++k)
-        same = one[i].delta_mm[k] == many[i].delta_mm[k] || (std::isnan(one[i].delta_mm[k]) && std::isnan(many[i].delta_mm[k]));
+        same = one[i].delta_mm[k] == many[i].delta_mm[k] ||
+               (std::isnan(one[i].delta_mm[k]) && std::isnan(many[i].delta_mm[k]));
     }
     std::printf("a Jacobian's %zu designs on %u threads: one at a time %.1f ms, together (simulate_many) %.1f ms, "
                 "%.2fx; %s\n", xs.size(), threads, t_one[t_one.size() / 2], t_many[t_many.size() / 2],
-                t_one[t_one.size() / 2] / t_many[t_many.size() / 2], same ? "the same residuals bit for bit" : "RESIDUALS DIFFER");
+                t_one[t_one.size() / 2] / t_many[t_many.size() / 2],
+                same ? "the same residuals bit for bit" : "RESIDUALS DIFFER");
   }
   // The bunch's centre (the default when the machine has a bunch: the reference and 13
   // quadrature nodes, on all threads), as the main job's fit evaluates it.

@@ -4,7 +4,8 @@
 // takes one particle with every field sample through TrackModel::field; the group stepper
 // takes up to kMaxLanes particles that start at one azimuth through the same grid steps
 // together, sampling the main field from precomputed rows (FieldRowTable) at the stage
-// azimuths, which every grid step repeats.
+// azimuths, which every grid step repeats. The particles of a group may each have a model of
+// their own (an optimizer's designs), as long as the models share the map.
 #include <algorithm>
 #include <array>
 #include <cmath>
@@ -246,9 +247,10 @@ struct AzParticle {
       double d = nearest(c, th) - th;
       // The line is met where g(theta) = c(r(theta)) - theta = 0. Newton's step d / (1 - c' r')
       // (c' by a difference, r' = r x / s) leaves an error of about 1e-3 d^2, and d is a few
-      // 1e-5 rad after the step to the estimate for a particle near its orbit: one or two steps. The plain iteration
-      // theta <- c(r) contracts only by c' r', which a particle far off its orbit (r' ~ 1) takes
-      // to -0.3: after 8 steps it was still 1e-6 rad (6e-4 mm) off the line.
+      // 1e-5 rad after the step to the estimate for a particle near its orbit: one or two
+      // steps. The plain iteration theta <- c(r) contracts only by c' r', which a particle far
+      // off its orbit (r' ~ 1) takes to -0.3: after 8 steps it was still 1e-6 rad (6e-4 mm)
+      // off the line.
       const double dr = 1e-7 * y[0];
       const double c2 = crossing_of(m, e, y[0] + dr);
       const double s2 = 1 - y[1] * y[1] - y[3] * y[3];

@@ -143,6 +143,18 @@ void TrackModel::azimuth_terms(double th, AzimuthTerms& t) const {
   }
 }
 
+void TrackModel::harmonic_terms(size_t k, double th, const AzimuthTerms* terms, double& c, double& sn) const {
+  if (terms && k < kAzimuthHarmonics) {
+    c = terms->cos_h[k];
+    sn = terms->sin_h[k];
+    return;
+  }
+  const auto& h = effects.harmonics[k];
+  const double arg = h.n * (th - h.phase_rad);
+  c = std::cos(arg);
+  sn = std::sin(arg);
+}
+
 bool TrackModel::field_with_effects(double r_m, double th, FieldSample& out, const AzimuthTerms* terms,
                                     CoilHints* hints) const {
   // A stronger sector magnet scales the map's field; the trim coils see the scaled field
@@ -165,14 +177,7 @@ bool TrackModel::field_with_effects(double r_m, double th, FieldSample& out, con
     const double dr = r_m - h.r0_m;
     const double g = h.inv_width2 == 0 ? 1.0 : std::exp(-0.5 * dr * dr * h.inv_width2);
     double c, sn;
-    if (terms && k < kAzimuthHarmonics) {
-      c = terms->cos_h[k];
-      sn = terms->sin_h[k];
-    } else {
-      const double arg = h.n * (th - h.phase_rad);
-      c = std::cos(arg);
-      sn = std::sin(arg);
-    }
+    harmonic_terms(k, th, terms, c, sn);
     const double b = h.amplitude_T * g * c;
     out.bz_T += b;
     out.dbz_dr_T_m -= b * dr * h.inv_width2;
@@ -252,14 +257,7 @@ void TrackModel::add_to_main_lanes(int n, const double* r, double th, double* bz
   for (size_t k = 0; k < effects.harmonics.size(); ++k) {
     const auto& h = effects.harmonics[k];
     double c, sn;
-    if (terms && k < kAzimuthHarmonics) {
-      c = terms->cos_h[k];
-      sn = terms->sin_h[k];
-    } else {
-      const double arg = h.n * (th - h.phase_rad);
-      c = std::cos(arg);
-      sn = std::sin(arg);
-    }
+    harmonic_terms(k, th, terms, c, sn);
     double g[kMaxLanes];
     for (int l = 0; l < n; ++l) {
       const double dr = r[l] - h.r0_m;

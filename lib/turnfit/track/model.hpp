@@ -203,6 +203,8 @@ struct TrackModel {
  private:
   bool field_with_effects(double r_m, double theta_rad, FieldSample& out, const AzimuthTerms* terms,
                           CoilHints* hints) const;
+  /// cos and sin of n (theta - phase) of harmonic k, from `terms` when they hold it.
+  void harmonic_terms(size_t k, double theta_rad, const AzimuthTerms* terms, double& c, double& sn) const;
   void add_coils(double r_m, double theta_rad, const FieldSample& main, double sector_centre_rad, FieldSample& out,
                  CoilHints* hints) const;
   /// add_coils for the lanes of add_to_main_lanes (each lane's centre line given).
