@@ -138,7 +138,7 @@ int main(int argc, char** argv) {
               "%.2f ms (reference stepper %.2f ms, %.2fx); worst turn %.1e mm against its own turns\n",
               p->n_variables(), t_ev, t_ev_ref, t_ev_ref / t_ev, linf);
   // A forward-difference Jacobian's 49 designs on 2 threads: one simulate() at a time per
-  // thread (as localsearch did before issue 17's third session) against simulate_many in
+  // thread (as localsearch did before issue 17's second session) against simulate_many in
   // chunks of at most 16 (what localsearch does now), and that the two agree bit for bit.
   {
     std::vector<std::vector<double>> xs = {x};
@@ -155,14 +155,7 @@ int main(int argc, char** argv) {
       parallel_for(xs.size(), threads, [&](size_t i, unsigned) { one[i] = p->simulate(xs[i]); });
       t_one.push_back(seconds(a) * 1e3);
       a = Clock::now();
-      const size_t chunks = std::max<size_t>(threads, (xs.size() + 15) / 16);
-      parallel_for(chunks, threads, [&](size_t c, unsigned) {
-        const size_t b = c * xs.size() / chunks, e = (c + 1) * xs.size() / chunks;
-        const std::vector<std::vector<double>> part(xs.begin() + static_cast<long>(b),
-                                                    xs.begin() + static_cast<long>(e));
-        std::vector<TurnPatternResult> r = p->simulate_many(part);
-        for (size_t i = b; i < e; ++i) many[i] = std::move(r[i - b]);
-      });
+      many = p->simulate_many(xs, threads);
       t_many.push_back(seconds(a) * 1e3);
     }
     std::sort(t_one.begin(), t_one.end());

@@ -273,33 +273,26 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
     L.z.head(static_cast<Index>(nd)) = L.e_mm;
     rows.white.whiten(L.z.head(static_cast<Index>(nd)));
     std::vector<std::vector<double>> cols(n);
-    // The columns' designs in chunks, each chunk's particles tracked together
-    // (TurnPatternProblem::simulate_many; as localsearch's Jacobian does).
-    const size_t lanes = static_cast<size_t>(TrackModel::kMaxLanes);
-    const size_t chunks = std::min(n, std::max<size_t>(resolve_thread_count(threads), (n + lanes - 1) / lanes));
-    parallel_for(chunks, threads, [&](size_t c, unsigned) {
-      const size_t b = c * n / chunks, e = (c + 1) * n / chunks;
-      std::vector<std::vector<double>> xs;
-      std::vector<double> hs;
-      for (size_t j = b; j < e; ++j) {
-        std::vector<double> x = S.x;
-        double h = s.fit.fd_step * (vars[j].upper - vars[j].lower);
-        if (x[j] + h > vars[j].upper) h = -h;
-        x[j] += h;
-        xs.push_back(std::move(x));
-        hs.push_back(h);
+    // The columns' designs tracked together in chunks (simulate_many, as localsearch's Jacobian).
+    std::vector<std::vector<double>> xs;
+    std::vector<double> hs;
+    for (size_t j = 0; j < n; ++j) {
+      std::vector<double> x = S.x;
+      double h = s.fit.fd_step * (vars[j].upper - vars[j].lower);
+      if (x[j] + h > vars[j].upper) h = -h;
+      x[j] += h;
+      xs.push_back(std::move(x));
+      hs.push_back(h);
+    }
+    const std::vector<TurnPatternResult> rs = S.prob->simulate_many(xs, threads);
+    for (size_t j = 0; j < n; ++j) {
+      if (!rs[j].ok) throw Error(ExitCode::data, "diagnose: a fitted design cannot be simulated: " + rs[j].reason);
+      cols[j].resize(nd);
+      for (size_t q = 0; q < nd; ++q) {
+        const size_t i = rows.point[q];
+        cols[j][q] = rs[j].matched[i] ? (rs[j].delta_mm[i] - e_out[i]) / hs[j] : 0;
       }
-      const std::vector<TurnPatternResult> rs = S.prob->simulate_many(xs);
-      for (size_t j = b; j < e; ++j) {
-        const TurnPatternResult& r = rs[j - b];
-        if (!r.ok) throw Error(ExitCode::data, "diagnose: a fitted design cannot be simulated: " + r.reason);
-        cols[j].resize(nd);
-        for (size_t q = 0; q < nd; ++q) {
-          const size_t i = rows.point[q];
-          cols[j][q] = r.matched[i] ? (r.delta_mm[i] - e_out[i]) / hs[j - b] : 0;
-        }
-      }
-    });
+    }
     evaluations += n;
     L.J_mm.resize(static_cast<Index>(nd), static_cast<Index>(n));
     for (size_t j = 0; j < n; ++j)

@@ -151,31 +151,25 @@ struct Residuals {
     if (known) out[0] = at;
     std::vector<double> step(n);
     for (size_t j = 0; j < n; ++j) step[j] = u[j] + h <= 1 ? h : -h;
-    const size_t first = known ? 1 : 0, count = ncols + 1 - first;
-    // The designs in contiguous chunks, at least one per worker and at most a group's lanes
-    // each, every chunk's reference particles tracked together (simulate_many: several times
-    // the throughput of one track at a time). A design's residuals do not depend on its chunk.
-    const size_t lanes = static_cast<size_t>(TrackModel::kMaxLanes);
-    const size_t chunks = std::min(count, std::max<size_t>(resolve_thread_count(threads), (count + lanes - 1) / lanes));
-    parallel_for(chunks, threads, [&](size_t c, unsigned) {
-      const size_t b = first + c * count / chunks, e = first + (c + 1) * count / chunks;
-      std::vector<std::vector<double>> us, xs;
-      for (size_t k = b; k < e; ++k) {
-        std::vector<double> v = u;
-        if (k > 0) {
-          const size_t j = (k - 1) % n;
-          v[j] += k - 1 < n ? step[j] : -step[j];
-        }
-        xs.push_back(x_of(v.data()));
-        us.push_back(std::move(v));
+    const size_t first = known ? 1 : 0;
+    // The designs' reference particles tracked together in chunks (simulate_many); a design's
+    // residuals do not depend on its chunk.
+    std::vector<std::vector<double>> us, xs;
+    for (size_t k = first; k <= ncols; ++k) {
+      std::vector<double> v = u;
+      if (k > 0) {
+        const size_t j = (k - 1) % n;
+        v[j] += k - 1 < n ? step[j] : -step[j];
       }
-      const std::vector<TurnPatternResult> rs = p.simulate_many(xs);
-      for (size_t k = b; k < e; ++k) {
-        ++evaluations;
-        if (!rs[k - b].ok) ++failed;
-        out[k] = point_of(us[k - b], rs[k - b]);
-      }
-    });
+      xs.push_back(x_of(v.data()));
+      us.push_back(std::move(v));
+    }
+    const std::vector<TurnPatternResult> rs = p.simulate_many(xs, threads);
+    for (size_t k = first; k <= ncols; ++k) {
+      ++evaluations;
+      if (!rs[k - first].ok) ++failed;
+      out[k] = point_of(us[k - first], rs[k - first]);
+    }
     at = out[0];
     Eigen::MatrixXd J(nres, n);
     for (size_t j = 0; j < n; ++j) {

@@ -338,17 +338,31 @@ Machine TurnPatternProblem::machine_at(const std::vector<double>& x) const {
 }
 
 TurnPatternResult TurnPatternProblem::simulate(const std::vector<double>& x) const {
-  return std::move(simulate_many({x})[0]);
+  return std::move(simulate_group(&x, 1)[0]);
 }
 
-std::vector<TurnPatternResult> TurnPatternProblem::simulate_many(const std::vector<std::vector<double>>& xs) const {
+std::vector<TurnPatternResult> TurnPatternProblem::simulate_many(const std::vector<std::vector<double>>& xs,
+                                                                 unsigned threads) const {
   std::vector<TurnPatternResult> out(xs.size());
+  const size_t n = xs.size(), lanes = static_cast<size_t>(TrackModel::kMaxLanes);
+  if (n == 0) return out;
+  const size_t chunks = std::min(n, std::max<size_t>(resolve_thread_count(threads), (n + lanes - 1) / lanes));
+  parallel_for(chunks, threads, [&](size_t c, unsigned) {
+    const size_t b = c * n / chunks, e = (c + 1) * n / chunks;
+    std::vector<TurnPatternResult> r = simulate_group(xs.data() + b, e - b);
+    for (size_t i = b; i < e; ++i) out[i] = std::move(r[i - b]);
+  });
+  return out;
+}
+
+std::vector<TurnPatternResult> TurnPatternProblem::simulate_group(const std::vector<double>* xs, size_t count) const {
+  std::vector<TurnPatternResult> out(count);
   // Each design's model and reference particle; a design that cannot be built says why.
   std::vector<std::unique_ptr<TrackModel>> models;
   std::vector<const TrackModel*> model_of;
   std::vector<ParticleState> starts;
   std::vector<size_t> design;
-  for (size_t i = 0; i < xs.size(); ++i) {
+  for (size_t i = 0; i < count; ++i) {
     try {
       if (xs[i].size() != vars_.size()) throw Error(ExitCode::software, "a design of the wrong size");
       const Machine m = machine_at(xs[i]);

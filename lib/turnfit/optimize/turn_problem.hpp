@@ -84,9 +84,12 @@ class TurnPatternProblem : public Problem {
   /// The design's turns compared with the measurement.
   TurnPatternResult simulate(const std::vector<double>& x) const;
   /// simulate() of several designs, their reference particles tracked together (the group
-  /// stepper with a model per design, several times the throughput of one at a time): what
-  /// simulate() gives each, bit for bit. For finite-difference Jacobians. Thread-safe.
-  std::vector<TurnPatternResult> simulate_many(const std::vector<std::vector<double>>& xs) const;
+  /// stepper with a model per design: 1.15-1.4x the throughput of one at a time, bench/
+  /// RESULTS.md): what simulate() gives each, bit for bit, whatever the thread count. On
+  /// `threads` workers (0: all cores), the designs in contiguous chunks of at most a group's
+  /// lanes, at least one per worker. For finite-difference Jacobians. Thread-safe.
+  std::vector<TurnPatternResult> simulate_many(const std::vector<std::vector<double>>& xs,
+                                               unsigned threads = 1) const;
 
   /// The machine as loaded (variables at their start values).
   const Machine& machine() const { return machine_; }
@@ -148,6 +151,8 @@ class TurnPatternProblem : public Problem {
   void set_sigma_mm(std::vector<double> sigma);
 
  private:
+  /// simulate() of count designs xs[0..count) in one call of the group stepper.
+  std::vector<TurnPatternResult> simulate_group(const std::vector<double>* xs, size_t count) const;
   TurnPatternProblem(std::string name, std::vector<double> lower, std::vector<double> upper,
                      std::vector<std::string> names, size_t n_objectives, size_t n_constraints);
   std::string file_;

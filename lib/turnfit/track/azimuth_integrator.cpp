@@ -136,7 +136,7 @@ struct AzParticle {
              std::vector<TurnRecord>* t, std::vector<KickRecord>* k, std::vector<PathPoint>* p)
       : m(model), st(settings), turns(t), kicks(k), path(p), f{model} {
     P = std::sqrt(s0.px * s0.px + s0.py * s0.py + s0.pz * s0.pz);
-    th = std::atan2(s0.y, s0.x);
+    th = start_azimuth(s0);
     th0 = th;
     th_end = th0 + kTwoPi * st.turns;
     y[0] = std::hypot(s0.x, s0.y);
@@ -155,6 +155,9 @@ struct AzParticle {
     dnode = azimuth_step(g.dtheta_rad(), st.step_deg);
     node0 = g.theta_min_rad();
   }
+
+  /// The azimuth a particle starts from (the group stepper groups particles by it).
+  static double start_azimuth(const ParticleState& s) { return std::atan2(s.y, s.x); }
 
   void set_momentum() {
     const double sign = m.charge_e >= 0 ? 1.0 : -1.0;
@@ -558,19 +561,14 @@ void track_azimuth_group(const TrackModel* const* ms, const ParticleState* s0, s
     return;
   }
   const TrackModel& m = *ms[0];
-  std::vector<std::unique_ptr<AzParticle>> lane;
-  for (size_t l = 0; l < n; ++l) {
-    lane.push_back(std::make_unique<AzParticle>(*ms[l], s0[l], st, out[l].turns, out[l].kicks, out[l].path));
-    lane.back()->landing_tol = 1e-12;
-  }
-  // Lanes go through the same grid steps only from one azimuth and on one map: otherwise the
-  // lanes that can go together (an optimizer's designs that move the injection azimuth do not)
-  // go as groups of their own.
+  // Lanes go through the same grid steps only from one azimuth (AzParticle's start th) and on
+  // one map: otherwise the lanes that can go together (an optimizer's designs that move the
+  // injection azimuth do not) go as groups of their own.
+  const double th0 = AzParticle::start_azimuth(s0[0]);
   std::vector<size_t> with_first, rest;
   for (size_t l = 0; l < n; ++l)
-    (lane[l]->th == lane[0]->th && same_main_field(*ms[l], m) ? with_first : rest).push_back(l);
+    (AzParticle::start_azimuth(s0[l]) == th0 && same_main_field(*ms[l], m) ? with_first : rest).push_back(l);
   if (!rest.empty()) {
-    lane.clear();
     for (const auto* part : {&with_first, &rest}) {
       std::vector<const TrackModel*> pm;
       std::vector<ParticleState> ps;
@@ -583,6 +581,11 @@ void track_azimuth_group(const TrackModel* const* ms, const ParticleState* s0, s
       track_azimuth_group(pm.data(), ps.data(), pm.size(), st, po.data());
     }
     return;
+  }
+  std::vector<std::unique_ptr<AzParticle>> lane;
+  for (size_t l = 0; l < n; ++l) {
+    lane.push_back(std::make_unique<AzParticle>(*ms[l], s0[l], st, out[l].turns, out[l].kicks, out[l].path));
+    lane.back()->landing_tol = 1e-12;
   }
   const PolarGrid& g = m.map.grid();
   const double cell = g.dtheta_rad(), dnode = lane[0]->dnode, node0 = lane[0]->node0;

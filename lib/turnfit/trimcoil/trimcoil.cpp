@@ -334,22 +334,22 @@ void TrimCoilSum::build(const std::vector<TrimCoilField>& coils, const std::vect
     p.r1 = b;
     p.h = (b - a) / static_cast<double>(std::max<size_t>(n - 1, 1));
     p.inv_h = 1 / p.h;
-    p.s.assign(std::max<size_t>(n, 2), 0.0);
-    p.ds.assign(p.s.size(), 0.0);
+    std::vector<double> sv(std::max<size_t>(n, 2), 0.0), dv(sv.size(), 0.0);
     // One-sided values of this piece at its ends (a coil's edge may be one of them).
     const double eps = 1e-12 * (b - a);
-    for (size_t j = 0; j < p.s.size(); ++j) {
+    for (size_t j = 0; j < sv.size(); ++j) {
       const double r = std::min(std::max(a + static_cast<double>(j) * p.h, a + eps), b - eps);
       for (size_t i : here) {
         double v, d;
         coils[i].shape_exact(r, v, d);
-        p.s[j] += coils[i].coil_.bmax_T * v;
-        p.ds[j] += coils[i].coil_.bmax_T * d;
+        sv[j] += coils[i].coil_.bmax_T * v;
+        dv[j] += coils[i].coil_.bmax_T * d;
       }
     }
-    p.poly.resize(4 * (p.s.size() - 1));
-    for (size_t j = 0; j + 1 < p.s.size(); ++j) {
-      const double y0 = p.s[j], y1 = p.s[j + 1], m0 = p.h * p.ds[j], m1 = p.h * p.ds[j + 1];
+    // The Hermite cubic through the nodes' values and slopes, interval by interval.
+    p.poly.resize(4 * (sv.size() - 1));
+    for (size_t j = 0; j + 1 < sv.size(); ++j) {
+      const double y0 = sv[j], y1 = sv[j + 1], m0 = p.h * dv[j], m1 = p.h * dv[j + 1];
       p.poly[4 * j] = y0;
       p.poly[4 * j + 1] = m0;
       p.poly[4 * j + 2] = 3 * (y1 - y0) - 2 * m0 - m1;
@@ -375,7 +375,7 @@ void TrimCoilSum::build(const std::vector<TrimCoilField>& coils, const std::vect
 
 size_t TrimCoilSum::nodes() const {
   size_t n = 0;
-  for (const auto& p : pieces_) n += p.s.size();
+  for (const auto& p : pieces_) n += p.intervals() + 1;
   return n;
 }
 
@@ -399,10 +399,8 @@ void TrimCoilSum::lookup(double r, Hint& hint, double& b, double& db) const {
 
 void TrimCoilSum::add(double r_m, double main_b, double main_db_dr, double main_db_dth, double threshold_T, double& b,
                       double& db_dr, double& db_dth) const {
-  double s, ds;
-  value(r_m, s, ds);
-  if (s == 0 && ds == 0) return;
-  add_faded(s, ds, main_b, main_db_dr, main_db_dth, threshold_T, b, db_dr, db_dth);
+  Hint none;  // no place known: value()'s search
+  add_near(r_m, none, main_b, main_db_dr, main_db_dth, threshold_T, b, db_dr, db_dth);
 }
 
 }  // namespace turnfit

@@ -174,10 +174,11 @@ class TrimCoilSum {
  private:
   struct Piece {  // equally spaced nodes on [r0, r0 + (n - 1) h]
     double r0, r1, h, inv_h;
-    std::vector<double> s, ds;
-    /// The Hermite cubic of each interval in powers of its offset u in [0, 1]: four numbers
-    /// per interval, c0 + c1 u + c2 u^2 + c3 u^3 (fewer operations per lookup than the basis).
+    /// The Hermite cubic through the summed values and slopes at the nodes, each interval in
+    /// powers of its offset u in [0, 1]: c0 + c1 u + c2 u^2 + c3 u^3, four numbers per
+    /// interval (fewer operations per lookup than the Hermite basis).
     std::vector<double> poly;
+    size_t intervals() const { return poly.size() / 4; }
   };
   void build(const std::vector<TrimCoilField>& coils, const std::vector<size_t>& use, double r_lo_m, double r_hi_m);
   /// value()'s search; the hint gets the piece found (or none).
@@ -185,7 +186,7 @@ class TrimCoilSum {
   /// The table at r in piece p.
   static void node_value(const Piece& p, double r_m, double& b, double& db_dr) {
     const double t = (r_m - p.r0) * p.inv_h;
-    const size_t i = std::min(static_cast<size_t>(t), p.s.size() - 2);
+    const size_t i = std::min(static_cast<size_t>(t), p.intervals() - 1);
     const double u = t - static_cast<double>(i), u2 = u * u;
     const double* c = &p.poly[4 * i];
     b = (c[0] + c[1] * u) + u2 * (c[2] + c[3] * u);
