@@ -139,8 +139,10 @@ TEST_CASE("bunch: files of offsets: any subset of the columns, strict numbers", 
     std::ofstream(dir + "/" + name) << text;
     return dir + "/" + name;
   };
-  const auto offs = read_bunch_file(write("ok.csv", "# two particles\ndE_MeV,dr_mm\n0.5,1\n-0.5,-1\n"));
+  const BunchFile file = read_bunch_file(write("ok.csv", "# two particles\ndE_MeV,dr_mm\n0.5,1\n-0.5,-1\n"));
+  const auto& offs = file.offsets;
   REQUIRE(offs.size() == 2);
+  CHECK(file.lines == std::vector<long>{3, 4});
   CHECK(offs[0].dE_MeV == 0.5);
   CHECK(offs[1].dr_mm == -1);
   CHECK(offs[1].dpr_mrad == 0);
@@ -151,6 +153,17 @@ TEST_CASE("bunch: files of offsets: any subset of the columns, strict numbers", 
   CHECK_THAT(msg, Catch::Contains(":3"));
   CHECK(error_code([&] { read_bunch_file(write("empty.csv", "dr_mm\n")); }) == 65);
   CHECK(error_code([&] { read_bunch_file(dir + "/missing.csv"); }) == 66);
+  // A row no particle can start from is named by its file and line (the probe of issue 18 had
+  // only "particle 1", and no file).
+  Injection inj;
+  inj.energy_MeV = 72;
+  inj.r_mm = 2000;
+  const BunchFile starved = read_bunch_file(write("starved.csv", "dE_MeV\n0.5\n\n-80\n"));
+  CHECK(offset_states(inj, 938.272, 50.65, starved, 1).size() == 1);  // the bad row not reached
+  CHECK(error_code([&] { offset_states(inj, 938.272, 50.65, starved); }, &msg) == 65);
+  CHECK_THAT(msg, Catch::Contains("starved.csv:4: ") && Catch::Contains("no kinetic energy"));
+  CHECK(error_code([&] { offset_states(inj, 938.272, 50.65, std::vector<BunchOffset>(starved.offsets)); }, &msg) == 65);
+  CHECK_THAT(msg, Catch::Contains("(particle 1)"));
 }
 
 TEST_CASE("bunch: results do not depend on the thread count, a zero bunch is the reference particle",

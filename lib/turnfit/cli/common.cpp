@@ -8,6 +8,7 @@
 #include <new>
 
 #include "turnfit/io/error.hpp"
+#include "turnfit/io/limits.hpp"
 #include "turnfit/io/parallel.hpp"
 #include "turnfit/version.hpp"
 
@@ -63,20 +64,20 @@ int run_tool(const std::string& tool, CLI::App& app, int argc, char** argv,
     std::cout << e.what() << "\n";
     return flushed(0);
   } catch (const CLI::ParseError& e) {
-    std::cerr << prog << ": " << e.what() << "\n"
+    std::cerr << prog << ": " << clip_message(e.what()) << "\n"
               << "Run '" << prog << " --help' for usage.\n";
     return static_cast<int>(ExitCode::usage);
   }
   try {
     return flushed(body());
   } catch (const Error& e) {
-    std::cerr << prog << ": " << e.what() << "\n";
+    std::cerr << prog << ": " << clip_message(e.what()) << "\n";
     return static_cast<int>(e.code());
   } catch (const std::bad_alloc&) {
     std::cerr << prog << ": out of memory\n";
     return static_cast<int>(ExitCode::software);
   } catch (const std::exception& e) {
-    std::cerr << prog << ": internal error: " << e.what() << "\n";
+    std::cerr << prog << ": internal error: " << clip_message(e.what()) << "\n";
     return static_cast<int>(ExitCode::software);
   }
 }
@@ -105,7 +106,7 @@ std::string provenance_comment() {
 }
 
 void warn(const CommonOptions& opts, const std::string& message) {
-  if (!opts.quiet) std::cerr << (g_tool.empty() ? "turnfit" : g_tool) << ": warning: " << message << "\n";
+  if (!opts.quiet) std::cerr << (g_tool.empty() ? "turnfit" : g_tool) << ": warning: " << clip_message(message) << "\n";
 }
 
 bool stderr_is_tty() { return ::isatty(2) == 1; }

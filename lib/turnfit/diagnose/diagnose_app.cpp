@@ -8,6 +8,7 @@
 #include <sstream>
 
 #include "turnfit/io/error.hpp"
+#include "turnfit/io/json.hpp"
 #include "turnfit/io/output.hpp"
 #include "turnfit/optimize/localsearch_app.hpp"
 #include "turnfit/optimize/problem_file.hpp"
@@ -198,7 +199,7 @@ std::string diagnosis_markdown(const TurnPatternProblem& p, const json& r) {
           md << num(it.value(), 4);
           if (e["sigma"].contains(it.key())) md << " +- " << num(e["sigma"][it.key()], 2);
         } else {
-          md << it.value().dump();
+          md << json_text(it.value());
         }
         sep = ", ";
       }
@@ -206,7 +207,7 @@ std::string diagnosis_markdown(const TurnPatternProblem& p, const json& r) {
          << ", held-out gain " << num(e["held_out_gain"], 4) << ".\n";
       json entry = e["parameters"];
       entry["type"] = e["type"];
-      md << "  Machine-file entry: `" << entry.dump() << "`\n";
+      md << "  Machine-file entry: `" << json_text(entry) << "`\n";
     }
     md << "\n";
   }
@@ -272,7 +273,7 @@ std::string diagnosis_markdown(const TurnPatternProblem& p, const json& r) {
     md << "Not candidates (a design variable represents them, or they leave no trace in radial turns):\n\n";
     for (const auto& n : r["not_candidates"]) {
       md << "- " << n["type"].get<std::string>();
-      if (!n["instance"].empty()) md << " " << n["instance"].dump();
+      if (!n["instance"].empty()) md << " " << json_text(n["instance"]);
       md << ": " << n["reason"].get<std::string>();
       if (!n["variables"].empty()) {
         md << " (";
@@ -442,14 +443,14 @@ int run_diagnose(const DiagnoseOptions& o) {
   std::unique_ptr<OutputFile> rep = std::make_unique<OutputFile>(out_path);
   std::unique_ptr<OutputFile> md = o.markdown.empty() ? nullptr : std::make_unique<OutputFile>(o.markdown);
   std::unique_ptr<OutputFile> mo = o.machine_out.empty() ? nullptr : std::make_unique<OutputFile>(o.machine_out);
-  rep->stream() << report.dump(1) << "\n";
+  rep->stream() << json_text(report, 1) << "\n";
   if (md) md->stream() << diagnosis_markdown(*p, report);
   if (mo) {
     json doc = relocate_machine_paths(d.machine_after, p->machine().dir, o.machine_out);
     doc["description"] = std::string(doc.value("description", "")) +
                          (doc.value("description", "").empty() ? "" : " ") + "Diagnosed by turnfit-diagnose (" +
                          d.verdict + ") against " + p->file() + ": design variables at the refit, effects found appended.";
-    mo->stream() << doc.dump(1) << "\n";
+    mo->stream() << json_text(doc, 1) << "\n";
   }
   if (!o.figures.empty()) write_figures(*p, d, report, o.figures, o.common.quiet);
   if (mo) mo->commit();

@@ -6,6 +6,8 @@
 #include <mutex>
 
 #include "turnfit/io/error.hpp"
+#include "turnfit/io/limits.hpp"
+#include "turnfit/io/text.hpp"
 
 namespace turnfit {
 namespace {
@@ -67,12 +69,32 @@ Eigen::MatrixXd periodic_slopes(const Eigen::MatrixXd& y) {
 double PolarGrid::dtheta_rad() const { return 2 * kPi / (static_cast<double>(symmetry) * ntheta); }
 double PolarGrid::theta_min_rad() const { return theta_min_deg * kPi / 180.0; }
 
+void check_grid_size(long nr, long ntheta) {
+  if (nr > limits::kGridPoints || ntheta > limits::kGridPoints || nr * ntheta > limits::kGridPoints)
+    throw Error(ExitCode::data, "field map: a grid of " + std::to_string(nr) + " x " + std::to_string(ntheta) +
+                                    " points is larger than the " + std::to_string(limits::kGridPoints) +
+                                    " points a map may hold (the limit)");
+}
+
 PolarFieldMap::PolarFieldMap(const PolarGrid& grid, std::vector<double> bz_T, std::string label)
     : grid_(grid), bz_(std::make_shared<const std::vector<double>>(std::move(bz_T))), label_(std::move(label)) {
   if (grid_.nr < 2 || grid_.ntheta < 1 || grid_.symmetry < 1 || !(grid_.dr_mm > 0) ||
       !(grid_.r_min_mm >= 0) || !std::isfinite(grid_.theta_min_deg))
     throw Error(ExitCode::data, "field map: invalid grid (need nr >= 2, ntheta >= 1, dr > 0, "
                                 "r_min >= 0, symmetry >= 1)");
+  check_grid_size(grid_.nr, grid_.ntheta);
+  // Bounds a map of a real machine keeps by far, so that arithmetic on the grid stays exact
+  // enough: an azimuth of 1e16 deg has no digit below 1 deg left (and stepped the tracker
+  // backwards forever), a radius of 1e300 mm overflows the step.
+  if (std::fabs(grid_.theta_min_deg) > 360)
+    throw Error(ExitCode::data, "field map: theta_min_deg " + format_exact(grid_.theta_min_deg) +
+                                    " is outside -360..360 deg");
+  if (grid_.symmetry > 360)
+    throw Error(ExitCode::data, "field map: symmetry " + std::to_string(grid_.symmetry) + " is above 360");
+  if (!(grid_.dr_mm >= 1e-3) || !(grid_.r_min_mm + (grid_.nr - 1) * grid_.dr_mm <= 1e6))
+    throw Error(ExitCode::data, "field map: the grid's radii (r_min_mm " + format_exact(grid_.r_min_mm) +
+                                    ", dr_mm " + format_exact(grid_.dr_mm) +
+                                    ") need dr >= 0.001 mm and the largest radius within 1000 m");
   if (bz_->size() != static_cast<size_t>(grid_.nr) * grid_.ntheta)
     throw Error(ExitCode::data, "field map: " + std::to_string(bz_->size()) + " values for a " +
                                     std::to_string(grid_.nr) + " x " + std::to_string(grid_.ntheta) +

@@ -40,6 +40,10 @@ struct PolarGrid {
   double r_max_m() const { return (r_min_mm + (nr - 1) * dr_mm) * 1e-3; }
 };
 
+/// Refuses (EX_DATAERR, naming the limit) a grid of more than limits::kGridPoints points, before
+/// a reader allocates for it.
+void check_grid_size(long nr, long ntheta);
+
 /// The spline along radius at fixed sub-cell azimuths: for each radial cell i, azimuthal cell j
 /// and offset slot s (an azimuth theta_min + (j + v_s) dtheta), the patch's polynomials in v
 /// evaluated at v_s, so that Bz(u) = sum_k row_k u^k and dBz/dv(u) = sum_k drow_k u^k (u the

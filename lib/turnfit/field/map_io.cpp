@@ -18,7 +18,7 @@ constexpr double kKiloGauss = 0.1;  // T per kG
 /// Sector count from the grid, or an error if the grid does not tile the circle.
 int symmetry_from_grid(int ntheta, double dtheta_deg, const std::string& name, long line) {
   double n = 360.0 / (ntheta * dtheta_deg);
-  long k = std::lround(n);
+  long k = n >= 0.5 && n <= 360.5 ? std::lround(n) : 0;  // lround of a huge n is undefined
   if (k < 1 || std::fabs(n - k) > 1e-6 * n)
     throw data_error(name, line,
                      std::to_string(ntheta) + " azimuths of " + format_exact(dtheta_deg) +
@@ -34,7 +34,7 @@ MapFormat parse_map_format(const std::string& name) {
 }
 
 PolarFieldMap parse_psi_ring(const std::string& text, const std::string& name, int symmetry) {
-  auto lines = split_lines(text);
+  auto lines = split_lines(text, name);
   size_t li = 0;
   auto next_nonblank = [&]() -> long {
     while (li < lines.size() && trim(lines[li]).empty()) ++li;
@@ -81,6 +81,11 @@ PolarFieldMap parse_psi_ring(const std::string& text, const std::string& name, i
   if (nr < 2 || nr > 100000 || nt < 1 || nt > 100000)
     throw data_error(name, lpar_line + 2, "implausible grid size " + std::to_string(nr) + " x " +
                                               std::to_string(nt));
+  try {
+    check_grid_size(nr, nt);
+  } catch (const Error& e) {
+    throw data_error(name, lpar_line + 2, e.what());
+  }
   int sym = symmetry_from_grid(static_cast<int>(nt), head[3], name, head_line[3]);
   if (symmetry > 0 && symmetry != sym)
     throw data_error(name, head_line[3], "grid covers 360/" + std::to_string(sym) +
@@ -144,7 +149,7 @@ PolarFieldMap parse_psi_ring(const std::string& text, const std::string& name, i
 }
 
 PolarFieldMap parse_turnfit_map(const std::string& text, const std::string& name) {
-  auto lines = split_lines(text);
+  auto lines = split_lines(text, name);
   size_t li = 0;
   auto skip = [&] {
     while (li < lines.size() && (trim(lines[li]).empty() || trim(lines[li]).front() == '#')) ++li;
@@ -195,8 +200,13 @@ PolarFieldMap parse_turnfit_map(const std::string& text, const std::string& name
   const char* missing = std::isnan(r_min_mm) ? "r_min_mm" : std::isnan(dr_mm) ? "dr_mm" : nr < 0 ? "nr"
                         : nt < 0 ? "ntheta" : sym < 0 ? "symmetry" : unit.empty() ? "unit" : nullptr;
   if (missing) throw data_error(name, 0, std::string("header lacks '") + missing + "'");
-  if (nr < 2 || nt < 1 || sym < 1 || !(dr_mm > 0) || r_min_mm < 0 || nr * nt > 100000000L)
+  if (nr < 2 || nt < 1 || sym < 1 || !(dr_mm > 0) || r_min_mm < 0)
     throw data_error(name, 0, "invalid grid (need nr >= 2, ntheta >= 1, symmetry >= 1, dr_mm > 0, r_min_mm >= 0)");
+  try {
+    check_grid_size(nr, nt);
+  } catch (const Error& e) {
+    throw data_error(name, 0, e.what());
+  }
   const double factor = unit == "kG" ? kKiloGauss : 1.0;
   std::vector<double> bz;
   bz.reserve(static_cast<size_t>(nr * nt));
@@ -222,7 +232,11 @@ PolarFieldMap parse_turnfit_map(const std::string& text, const std::string& name
   g.theta_min_deg = theta_min_deg;
   g.ntheta = static_cast<int>(nt);
   g.symmetry = static_cast<int>(sym);
-  return PolarFieldMap(g, std::move(bz), label);
+  try {
+    return PolarFieldMap(g, std::move(bz), label);
+  } catch (const Error& e) {
+    throw data_error(name, 0, e.what());
+  }
 }
 
 PolarFieldMap read_field_map(const std::string& path, MapFormat format, int symmetry) {

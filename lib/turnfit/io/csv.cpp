@@ -4,6 +4,7 @@
 #include <algorithm>
 
 #include "turnfit/io/error.hpp"
+#include "turnfit/io/limits.hpp"
 #include "turnfit/io/text.hpp"
 
 namespace turnfit {
@@ -13,7 +14,7 @@ CsvTable CsvTable::parse(const std::string& text, const std::string& name) {
   t.name_ = name;
   if (text.find('\0') != std::string::npos)
     throw data_error(name, 0, "binary data (NUL byte) where CSV text is expected");
-  auto lines = split_lines(text);
+  auto lines = split_lines(text, name);
   bool have_header = false;
   for (size_t i = 0; i < lines.size(); ++i) {
     std::string_view l = trim(lines[i]);
@@ -40,6 +41,9 @@ CsvTable CsvTable::parse(const std::string& text, const std::string& name) {
                        "expected " + std::to_string(t.header_.size()) + " fields (" +
                            std::to_string(t.header_.size()) + " columns in the header), found " +
                            std::to_string(fields.size()));
+    if (t.cells_.size() >= limits::kTableRows)
+      throw data_error(name, lineno, "more than " + std::to_string(limits::kTableRows) +
+                                         " data rows: refused (the limit of one table)");
     std::vector<std::string> row;
     row.reserve(fields.size());
     for (auto f : fields) row.emplace_back(f);

@@ -4,6 +4,7 @@
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
+#include <functional>
 
 #include "turnfit/io/error.hpp"
 #include "turnfit/io/text.hpp"
@@ -130,13 +131,7 @@ std::string unknown_dvar(const Machine& m, const std::string& name) {
 }
 
 // Whole-token finite decimal; hex floats and "inf"/"nan" are typos on a command line.
-bool parse_value(const std::string& s, double& out) {
-  if (s.empty() || s.find_first_of("xXnNiI") != std::string::npos) return false;
-  char* end = nullptr;
-  out = std::strtod(s.c_str(), &end);
-  return end == s.c_str() + s.size() && std::isfinite(out) &&
-         !std::isspace(static_cast<unsigned char>(s[0]));
-}
+bool parse_value(const std::string& s, double& out) { return parse_decimal(s, out); }
 
 std::string message_name(const std::string& path) { return path == "-" ? "<stdin>" : path; }
 
@@ -265,9 +260,47 @@ void set_dvar(Machine& m, const std::string& name, double value) {
   m = std::move(work);
 }
 
+namespace {
+
+/// One write of a set of values: a design variable's, or a JSON pointer's (a name starting '/').
+struct Write {
+  std::string name;
+  double value;
+};
+
+void apply_write(Machine& m, const Write& w) {
+  if (w.name[0] == '/') write_pointer(m, w.name, w.value);
+  else write_dvar(m, m.dvars.at(w.name), w.value);
+}
+
+/// Revalidates m after `writes`; if it fails, names the first write after which m no longer
+/// validates (found by applying them again one at a time from `before`): "name = value makes
+/// the machine invalid: why".
+void revalidate_after(Machine& m, const Machine& before, const std::vector<Write>& writes,
+                      const std::function<Error(const std::string&)>& make_error) {
+  try {
+    revalidate(m);
+    return;
+  } catch (const Error& all) {
+    Machine step = before;
+    for (const Write& w : writes) {
+      apply_write(step, w);
+      try {
+        revalidate(step);
+      } catch (const Error& e) {
+        throw make_error(w.name + " = " + num(w.value) + " makes the machine invalid: " + e.what());
+      }
+    }
+    throw make_error(std::string("these values make the machine invalid: ") + all.what());
+  }
+}
+
+}  // namespace
+
 void set_dvars(Machine& m, const std::vector<std::string>& names, const std::vector<double>& values) {
   if (names.size() != values.size()) throw Error(ExitCode::software, "set_dvars: as many values as names");
   Machine work = m;
+  std::vector<Write> writes;
   for (size_t i = 0; i < names.size(); ++i) {
     auto it = work.dvars.find(names[i]);
     if (it == work.dvars.end()) throw usage_error(unknown_dvar(work, names[i]));
@@ -275,18 +308,16 @@ void set_dvars(Machine& m, const std::vector<std::string>& names, const std::vec
     std::string bad = bounds_problem(it->second, values[i]);
     if (!bad.empty()) throw usage_error("design variable " + bad);
     write_dvar(work, it->second, values[i]);
+    writes.push_back({names[i], values[i]});
   }
-  try {
-    revalidate(work);
-  } catch (const Error& e) {
-    throw usage_error(std::string("these design-variable values make the machine invalid: ") + e.what());
-  }
+  revalidate_after(work, m, writes, [](const std::string& why) { return usage_error("design variable " + why); });
   m = std::move(work);
 }
 
 void apply_sets(Machine& m, const std::vector<std::string>& assignments) {
   if (assignments.empty()) return;
   Machine work = m;
+  std::vector<Write> writes;
   for (const auto& a : assignments) {
     std::string where = "--set '" + a + "': ";
     size_t eq = a.find('=');
@@ -300,6 +331,7 @@ void apply_sets(Machine& m, const std::vector<std::string>& assignments) {
       std::string bad = pointer_problem(work, name);
       if (!bad.empty()) throw usage_error(where + bad);
       write_pointer(work, name, value);
+      writes.push_back({name, value});
       continue;
     }
     auto it = work.dvars.find(name);
@@ -307,12 +339,9 @@ void apply_sets(Machine& m, const std::vector<std::string>& assignments) {
     std::string bad = bounds_problem(it->second, value);
     if (!bad.empty()) throw usage_error(where + bad);
     write_dvar(work, it->second, value);
+    writes.push_back({name, value});
   }
-  try {
-    revalidate(work);
-  } catch (const Error& e) {
-    throw usage_error(std::string("--set makes the machine invalid: ") + e.what());
-  }
+  revalidate_after(work, m, writes, [](const std::string& why) { return usage_error("--set " + why); });
   m = std::move(work);
 }
 
@@ -323,6 +352,7 @@ void apply_dvars_file(Machine& m, const std::string& path) {
     throw data_error(file, 0,
                      "expected a JSON object of design-variable values {\"name\": number}");
   Machine work = m;
+  std::vector<Write> writes;
   for (const auto& item : values.items()) {
     const std::string& name = item.key();
     std::string where = name.size() && name[0] == '/' ? name : "/" + name;
@@ -334,6 +364,7 @@ void apply_dvars_file(Machine& m, const std::string& path) {
       std::string bad = pointer_problem(work, name);
       if (!bad.empty()) throw data_error(file, 0, where + ": " + bad);
       write_pointer(work, name, value);
+      writes.push_back({name, value});
       continue;
     }
     auto it = work.dvars.find(name);
@@ -341,12 +372,9 @@ void apply_dvars_file(Machine& m, const std::string& path) {
     std::string bad = bounds_problem(it->second, value);
     if (!bad.empty()) throw data_error(file, 0, where + ": " + bad);
     write_dvar(work, it->second, value);
+    writes.push_back({name, value});
   }
-  try {
-    revalidate(work);
-  } catch (const Error& e) {
-    throw data_error(file, 0, std::string("these values make the machine invalid: ") + e.what());
-  }
+  revalidate_after(work, m, writes, [&file](const std::string& why) { return data_error(file, 0, why); });
   m = std::move(work);
 }
 

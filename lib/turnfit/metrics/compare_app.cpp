@@ -178,7 +178,7 @@ void write_errors_json(std::ostream& os, const CompareReport& r, bool provenance
   nlohmann::ordered_json objs = nlohmann::ordered_json::array();
   for (size_t k = 0; k < r.objectives.size(); ++k) {
     const Objective& o = r.objectives[k];
-    nlohmann::ordered_json j = nlohmann::ordered_json::parse(objective_to_json(o).dump());
+    nlohmann::ordered_json j = nlohmann::ordered_json::parse(json_text(objective_to_json(o)));
     j["spec"] = objective_spec(o);
     j["value"] = number(r.values[k].value);
     j["unit"] = norm_unit(o.norm);
@@ -187,8 +187,8 @@ void write_errors_json(std::ostream& os, const CompareReport& r, bool provenance
     objs.push_back(j);
   }
   doc["objectives"] = objs;
-  if (provenance) doc["provenance"] = nlohmann::ordered_json::parse(cli::provenance().dump());
-  os << doc.dump(1) << "\n";
+  if (provenance) doc["provenance"] = nlohmann::ordered_json::parse(json_text(cli::provenance()));
+  os << json_text(doc, 1) << "\n";
 }
 
 void write_errors_text(std::ostream& os, const CompareReport& r) {

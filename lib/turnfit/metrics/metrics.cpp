@@ -7,6 +7,7 @@
 
 #include "turnfit/io/csv.hpp"
 #include "turnfit/io/error.hpp"
+#include "turnfit/io/json.hpp"
 #include "turnfit/io/text.hpp"
 
 namespace turnfit {
@@ -118,27 +119,27 @@ std::string parse_item(std::string_view item, Objective* obj) {
 void json_turns(const nlohmann::json& t, TurnRange* part, const std::string& where) {
   auto turn = [&](const nlohmann::json& v) {
     if (!v.is_number_integer() || v.get<long long>() < 0 || v.get<long long>() > 999999999)
-      throw data_error(where, 0, "a turn is a whole number >= 0, got " + v.dump());
+      throw data_error(where, 0, "a turn is a whole number >= 0, got " + json_text(v));
     return static_cast<int>(v.get<long long>());
   };
   if (t.is_array()) {
-    if (t.size() != 2) throw data_error(where, 0, "\"turns\" is N or [first, last], got " + t.dump());
+    if (t.size() != 2) throw data_error(where, 0, "\"turns\" is N or [first, last], got " + json_text(t));
     part->first_turn = turn(t[0]);
     part->last_turn = turn(t[1]);
     if (part->first_turn > part->last_turn)
-      throw data_error(where, 0, "turn range " + t.dump() + " is empty (first > last)");
+      throw data_error(where, 0, "turn range " + json_text(t) + " is empty (first > last)");
   } else {
     part->first_turn = part->last_turn = turn(t);
   }
 }
 
 TurnRange json_part(const nlohmann::json& j, const std::string& where, bool allow_norm_keys) {
-  if (!j.is_object()) throw data_error(where, 0, "expected an object, got " + j.dump());
+  if (!j.is_object()) throw data_error(where, 0, "expected an object, got " + json_text(j));
   TurnRange part;
   for (const auto& [key, value] : j.items()) {
     if (key == "probe") {
       if (!value.is_string() || !valid_probe_name(value.get<std::string>()))
-        throw data_error(where, 0, "\"probe\" must be a probe name (or \"*\"), got " + value.dump());
+        throw data_error(where, 0, "\"probe\" must be a probe name (or \"*\"), got " + json_text(value));
       part.probe = value.get<std::string>();
     } else if (key == "turns") {
       json_turns(value, &part, where + ".turns");
@@ -400,7 +401,7 @@ std::vector<Objective> parse_objectives_json(const nlohmann::json& j, const std:
       out.push_back(std::move(obj));
       continue;
     }
-    if (!e.is_object()) throw data_error(at, 0, "expected an object or a spec string, got " + e.dump());
+    if (!e.is_object()) throw data_error(at, 0, "expected an object or a spec string, got " + json_text(e));
     if (!e.contains("norm") || !e["norm"].is_string())
       throw data_error(at, 0, "\"norm\" is missing or not a string (norms: " + norm_names() + ")");
     if (!parse_norm(e["norm"].get<std::string>(), &obj.norm))

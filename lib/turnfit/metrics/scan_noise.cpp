@@ -5,6 +5,7 @@
 #include <cstdlib>
 
 #include "turnfit/io/error.hpp"
+#include "turnfit/io/text.hpp"
 
 namespace turnfit {
 
@@ -16,10 +17,9 @@ double ScanNoise::covariance(double a_mm, double b_mm) const {
 ScanNoise scan_noise_from_text(const std::string& text, const std::string& where) {
   ScanNoise s;
   auto number = [&](const std::string& t) {
-    char* end = nullptr;
-    const double v = std::strtod(t.c_str(), &end);
-    if (t.empty() || end != t.c_str() + t.size() || !std::isfinite(v))
-      throw usage_error(where + ": '" + t + "' is not a number (expected DRIVE_MM or DRIVE_MM,CORR_MM)");
+    double v = 0;
+    if (!parse_decimal(t, v))
+      throw usage_error(where + ": " + quote(t) + " is not a number (expected DRIVE_MM or DRIVE_MM,CORR_MM)");
     return v;
   };
   const size_t comma = text.find(',');

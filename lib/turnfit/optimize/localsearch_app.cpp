@@ -410,8 +410,8 @@ int run_localsearch(const LocalSearchOptions& o) {
   // Writes the design, the report and the residuals, then commits them together.
   auto write_outputs = [&](const std::vector<double>& x, const nlohmann::json& rep) {
     reopen(best, out_path), reopen(report, o.report), reopen(residuals, o.residuals);
-    best->stream() << design_json(*p, x).dump(1) << "\n";
-    if (report) report->stream() << rep.dump(1) << "\n";
+    best->stream() << json_text(design_json(*p, x), 1) << "\n";
+    if (report) report->stream() << json_text(rep, 1) << "\n";
     if (residuals) {
       const TurnPatternResult fin = p->simulate(x);
       CompareReport cr = make_compare_report(p->measured(), fin.simulated, p->objectives(), 0);

@@ -2,9 +2,11 @@
 // also the checkpoint, exact resume, the final front, and progress on stderr.
 #include "turnfit/optimize/nsga_app.hpp"
 
+#include <sys/stat.h>
 #include <unistd.h>
 
 #include <cerrno>
+#include <cstdio>
 #include <chrono>
 #include <cmath>
 #include <cstring>
@@ -15,6 +17,8 @@
 #include <memory>
 
 #include "turnfit/io/error.hpp"
+#include "turnfit/io/json.hpp"
+#include "turnfit/io/limits.hpp"
 #include "turnfit/io/output.hpp"
 #include "turnfit/io/text.hpp"
 #include "turnfit/optimize/mpi.hpp"
@@ -118,7 +122,7 @@ std::string eval_record(const Individual& ind, const std::vector<std::string>& n
   // Known only once the generation is selected: see the "generation" record.
   j["rank"] = nullptr;
   j["crowding"] = nullptr;
-  return j.dump();
+  return json_text(j);
 }
 
 PopulationLog parse_population_log(const std::string& text, const std::string& name,
@@ -132,16 +136,20 @@ PopulationLog parse_population_log(const std::string& text, const std::string& n
     const bool last = nl == std::string::npos || nl + 1 >= text.size();
     const std::string line = text.substr(pos, nl == std::string::npos ? std::string::npos : nl - pos);
     const size_t next = nl == std::string::npos ? text.size() : nl + 1;
+    // turnfit-population(5): one record a line, each ended by a newline. A blank line is no
+    // record; a killed run's torn last line may be one (a record cut before its first byte).
     if (line.find_first_not_of(" \t\r") == std::string::npos) {
-      pos = next;
-      if (nl != std::string::npos) log.valid_bytes = pos;
-      continue;
+      if (nl == std::string::npos) {
+        log.torn_tail = true;
+        break;
+      }
+      throw data_error(name, line_no, "a blank line: every line of a population log is a record");
     }
     nlohmann::json j;
     bool parsed = true;
     try {
-      j = nlohmann::json::parse(line);
-    } catch (const nlohmann::json::exception&) {
+      j = parse_json(line, name);
+    } catch (const Error&) {
       parsed = false;
     }
     // A killed run leaves at most its last record torn: without its newline, or cut short.
@@ -188,7 +196,9 @@ PopulationLog parse_population_log(const std::string& text, const std::string& n
     } else if (kind == "generation") {
       // Only its number matters to a resume (its record is not written twice).
       auto gen = j.find("gen");
-      if (gen != j.end() && gen->is_number_unsigned()) log.generations.insert(gen->get<size_t>());
+      if (gen == j.end() || !gen->is_number_unsigned())
+        throw data_error(name, line_no, "a \"generation\" record without its number (\"gen\", an integer >= 0)");
+      log.generations.insert(gen->get<size_t>());
     } else {
       throw data_error(name, line_no, "unknown record \"" + kind + "\"");
     }
@@ -242,8 +252,8 @@ void check_same_run(const nlohmann::json& logged, const nlohmann::json& now, con
                           "mutation_probability", "eta_m"}) {
     if (!logged.contains(key)) throw data_error(file, 1, std::string("the run record lacks \"") + key + "\"");
     if (logged[key] != now[key])
-      throw usage_error(file + ": the log is of another run: " + key + " " + logged[key].dump() + " there, " +
-                        now[key].dump() + " here");
+      throw usage_error(file + ": the log is of another run: " + key + " " + json_text(logged[key]) + " there, " +
+                        json_text(now[key]) + " here");
   }
 }
 
@@ -298,7 +308,7 @@ int run_nsga(const NsgaOptions& o) {
   bool append = false;
   bool fresh = o.resume.empty();
   if (!o.resume.empty()) {
-    resume_text = read_input(o.resume).text;
+    resume_text = read_input(o.resume, limits::kLogBytes).text;
     log = parse_population_log(resume_text, o.resume, names);
     // A run killed before its run record was complete left nothing to resume: start afresh.
     fresh = log.run.is_null() && log.evaluated.empty();
@@ -319,26 +329,49 @@ int run_nsga(const NsgaOptions& o) {
   }
 
   // The log stream: records flushed one by one (it is the checkpoint, not an atomic output).
+  // It is written from the first record the search makes, so that a run refused before its
+  // first evaluation (a resumed log whose records do not fit this run) leaves a file it names
+  // as it was, and no new file behind. Whether it can be written is checked now.
+  struct NewLog {
+    std::string path;  ///< a file this run created, removed unless a record went into it
+    bool kept = false;
+    ~NewLog() {
+      if (!path.empty() && !kept) std::remove(path.c_str());
+    }
+  } new_log;
+  if (out_path != "-" && !append) {
+    struct stat st {};
+    const bool existed = ::stat(out_path.c_str(), &st) == 0;
+    std::ofstream probe(out_path, std::ios::binary | std::ios::app);
+    if (!probe) throw Error(ExitCode::cant_create, out_path + ": cannot open: " + std::strerror(errno));
+    if (!existed) new_log.path = out_path;
+  }
   std::ofstream file;
-  std::ostream* out = &std::cout;
-  if (out_path != "-") {
-    file.open(out_path, std::ios::binary | (append ? std::ios::app : std::ios::trunc));
-    if (!file) throw Error(ExitCode::cant_create, out_path + ": cannot open: " + std::strerror(errno));
-    out = &file;
-  }
-  if (fresh) {
-    *out << run.dump() << "\n";
+  std::ostream* out = nullptr;
+  bool write_failed = false;
+  const auto open_log = [&] {
+    if (out) return;
+    new_log.kept = true;
+    if (out_path == "-") {
+      out = &std::cout;
+    } else {
+      file.open(out_path, std::ios::binary | (append ? std::ios::app : std::ios::trunc));
+      out = &file;
+    }
+    if (fresh) {
+      *out << json_text(run) << "\n";
+    } else if (!append) {
+      // A new file continues the old one: its records first.
+      out->write(resume_text.data(), static_cast<std::streamsize>(log.valid_bytes));
+    }
     out->flush();
-  } else if (!append) {
-    // A new file continues the old one: its records first.
-    out->write(resume_text.data(), static_cast<std::streamsize>(log.valid_bytes));
-    out->flush();
-  }
-  bool write_failed = !*out;
+    write_failed = !*out;
+  };
 
   const bool quiet = o.common.quiet;
   Nsga2Callbacks cb;
   cb.on_evaluated = [&](const Individual& ind) {
+    open_log();
     if (write_failed) return;
     *out << eval_record(ind, names) << '\n';
     out->flush();
@@ -348,6 +381,7 @@ int run_nsga(const NsgaOptions& o) {
   bool printed = false;
   std::chrono::steady_clock::time_point last_print;
   cb.on_generation = [&](const Nsga2Progress& p) {
+    open_log();
     if (!log.generations.count(p.generation) && !write_failed) {
       nlohmann::json g;
       g["record"] = "generation";
@@ -361,7 +395,7 @@ int run_nsga(const NsgaOptions& o) {
       if (p.population)
         for (const auto& ind : *p.population) surv.push_back({ind.id, ind.rank, jnum(ind.crowding)});
       g["survivors"] = surv;
-      *out << g.dump() << '\n';
+      *out << json_text(g) << '\n';
       out->flush();
       write_failed = !*out;
     }
@@ -387,6 +421,7 @@ int run_nsga(const NsgaOptions& o) {
   } else {
     result = run_nsga2(problem, settings, cli::resolve_threads(o.common.threads), cb, log.evaluated);
   }
+  open_log();  // a run with nothing left to do still writes its log
   if (write_failed) throw Error(ExitCode::io, (out_path == "-" ? std::string("<stdout>") : out_path) + ": write error");
 
   size_t failed = 0;
@@ -411,7 +446,7 @@ int run_nsga(const NsgaOptions& o) {
   if (front.empty()) cli::warn(o.common, "no feasible individual in the final population: the front is empty");
   if (!o.front.empty()) {
     OutputFile f(o.front);
-    f.stream() << front_json(front, names).dump(1) << "\n";
+    f.stream() << json_text(front_json(front, names), 1) << "\n";
     f.commit();
   }
   if (!quiet)

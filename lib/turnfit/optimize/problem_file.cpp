@@ -109,7 +109,7 @@ Evaluation parse_command_answer(const std::string& out, const std::vector<std::s
     return e;
   }
   if (auto it = j.find("error"); it != j.end()) {
-    e.reason = "the command says: " + (it->is_string() ? it->get<std::string>() : it->dump());
+    e.reason = "the command says: " + (it->is_string() ? it->get<std::string>() : json_text(*it));
     return e;
   }
   auto f = j.find("f");
@@ -144,7 +144,7 @@ Evaluation CommandProblem::evaluate(const std::vector<double>& x) const {
   }
   ProcessSpec spec;
   spec.argv = shell_argv(command_);
-  spec.input = in.dump() + "\n";
+  spec.input = json_text(in) + "\n";
   spec.timeout_s = timeout_s_;
   spec.cwd = cwd_;
   spec.max_output = 1u << 20;

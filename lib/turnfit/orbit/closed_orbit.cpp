@@ -297,10 +297,8 @@ std::vector<double> parse_energies(const std::string& spec) {
   auto bad = [&](const std::string& why) { return usage_error("--energies '" + spec + "': " + why); };
   std::vector<double> out;
   auto num = [&](std::string_view tok) {
-    std::string t(trim(tok));
-    char* end = nullptr;
-    double v = std::strtod(t.c_str(), &end);
-    if (t.empty() || end != t.c_str() + t.size() || !std::isfinite(v)) throw bad("'" + t + "' is not a number");
+    double v = 0;
+    if (!parse_decimal(trim(tok), v)) throw bad(quote(trim(tok)) + " is not a number");
     return v;
   };
   if (spec.find(':') != std::string::npos) {

@@ -8,6 +8,7 @@
 #include "turnfit/field/load.hpp"
 #include "turnfit/field/map_io.hpp"
 #include "turnfit/io/error.hpp"
+#include "turnfit/io/json.hpp"
 #include "turnfit/io/output.hpp"
 #include "turnfit/machine/machine.hpp"
 
@@ -91,7 +92,7 @@ void write_orbit_json(std::ostream& os, const std::vector<OrbitRow>& rows, bool 
                    {"phase_slip_deg_per_turn", num(r.phase_slip_deg)}, {"r_avg_mm", num(r.r_avg_mm)},
                    {"status", r.status}});
   doc["orbits"] = arr;
-  os << doc.dump(1) << "\n";
+  os << json_text(doc, 1) << "\n";
 }
 
 void write_orbit_text(std::ostream& os, const std::vector<OrbitRow>& rows) {
@@ -263,7 +264,7 @@ int run_orbit(const OrbitOptions& o) {
     nlohmann::json doc = sector_spec_to_json(*job.spec);
     if (!o.common.no_provenance) doc["provenance"] = cli::provenance();
     specout.emplace(o.write_spec);
-    specout->stream() << doc.dump(1) << "\n";
+    specout->stream() << json_text(doc, 1) << "\n";
   }
   if (!o.write_map.empty()) {
     mapout.emplace(o.write_map);

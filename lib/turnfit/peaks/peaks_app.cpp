@@ -8,6 +8,7 @@
 #include <nlohmann/json.hpp>
 
 #include "turnfit/io/error.hpp"
+#include "turnfit/io/json.hpp"
 #include "turnfit/io/output.hpp"
 
 namespace turnfit {
@@ -186,7 +187,7 @@ void write_peaks_json(std::ostream& os, const std::string& probe, int first_turn
                    {"width_mm", p.width_mm},
                    {"flag", peak_flag_string(p.flags)}});
   doc["peaks"] = arr;
-  os << doc.dump(2) << "\n";
+  os << json_text(doc, 2) << "\n";
 }
 
 PeakResult peakfind(const ProbeProfile& profile, const PeakfindOptions& o, std::ostream& os) {

@@ -15,6 +15,7 @@
 
 #include "turnfit/io/csv.hpp"
 #include "turnfit/io/error.hpp"
+#include "turnfit/io/text.hpp"
 #include "turnfit/io/json.hpp"
 #include "turnfit/metrics/metrics.hpp"
 #include "turnfit/optimize/problems.hpp"
@@ -101,10 +102,8 @@ bool parse_range(const std::string& spec, const char* what, bool* has_lo, double
   auto parse = [&](const std::string& s, bool* has, double* v) {
     *has = !s.empty();
     if (s.empty()) return;
-    char* end = nullptr;
-    *v = std::strtod(s.c_str(), &end);
-    if (end == s.c_str() || *end != '\0' || !std::isfinite(*v))
-      throw usage_error(std::string(what) + " '" + spec + "': '" + s + "' is not a number");
+    if (!parse_decimal(s, *v))
+      throw usage_error(std::string(what) + " " + quote(spec) + ": " + quote(s) + " is not a number");
   };
   parse(spec.substr(0, colon), has_lo, lo);
   parse(spec.substr(colon + 1), has_hi, hi);

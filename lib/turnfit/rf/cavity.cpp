@@ -12,7 +12,7 @@
 namespace turnfit {
 
 VoltageProfile VoltageProfile::parse(const std::string& text, const std::string& name) {
-  auto lines = split_lines(text);
+  auto lines = split_lines(text, name);
   std::vector<std::pair<long, std::vector<std::string_view>>> rows;
   for (size_t i = 0; i < lines.size(); ++i) {
     auto l = trim(lines[i]);

@@ -438,24 +438,18 @@ SynthResult synthesize(const Machine& truth, const SynthSettings& s) {
       throw data_error(run.path, 0, "/bunch: synthetic profiles need a beam: the machine's bunch block (emittances, "
                                     "sigma_E_MeV, sigma_phase_deg) or bunch.file");
     std::vector<BunchOffset> offs;
+    std::vector<ParticleState> starts;
     if (!run.bunch->file.empty()) {
-      offs = read_bunch_file(run.bunch->file);
-      if (s.particles > 0 && s.particles < offs.size()) offs.resize(s.particles);
+      const BunchFile file = read_bunch_file(run.bunch->file);
+      starts = offset_states(effective_injection(run), run.particle.mass_MeV, model.rf_MHz, file, s.particles);
+      offs.assign(file.offsets.begin(), file.offsets.begin() + static_cast<long>(starts.size()));
     } else {
       const Bunch& b = *run.bunch;
       if (b.emittance_r_mm_mrad == 0 && b.emittance_z_mm_mrad == 0 && b.sigma_E_MeV == 0 && b.sigma_phase_deg == 0)
         throw data_error(run.path, 0, "/bunch: the bunch has no spread (emittances, sigma_E_MeV, sigma_phase_deg all 0): "
                                       "a beam without width gives no profile");
       offs = gaussian_bunch(b, s.particles, s.seed);
-    }
-    std::vector<ParticleState> starts;
-    starts.reserve(offs.size());
-    for (size_t i = 0; i < offs.size(); ++i) {
-      try {
-        starts.push_back(offset_state(effective_injection(run), run.particle.mass_MeV, model.rf_MHz, offs[i]));
-      } catch (const Error& e) {
-        throw Error(e.code(), std::string(e.what()) + " (particle " + std::to_string(i) + ")");
-      }
+      starts = offset_states(effective_injection(run), run.particle.mass_MeV, model.rf_MHz, offs);
     }
     res.bunch_mean = bunch_mean(model, effective_injection(run), run.particle.mass_MeV, offs);
     // Every particle's crossings, each in its own slot: filled concurrently, read in order.

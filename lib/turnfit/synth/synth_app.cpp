@@ -9,6 +9,8 @@
 #include <memory>
 
 #include "turnfit/io/error.hpp"
+#include "turnfit/io/json.hpp"
+#include "turnfit/io/text.hpp"
 #include "turnfit/io/output.hpp"
 #include "turnfit/machine/machine.hpp"
 #include "turnfit/physics/particle.hpp"
@@ -20,14 +22,8 @@ namespace {
 const CLI::Validator kNonNegative(
     [](std::string& v) {
       double x = 0;
-      try {
-        size_t used = 0;
-        x = std::stod(v, &used);
-        if (used != v.size()) return v + " is not a number";
-      } catch (const std::exception&) {
-        return v + " is not a number";
-      }
-      return std::isfinite(x) && x >= 0 ? std::string() : v + " must be 0 or more";
+      if (!parse_decimal(v, x)) return v + " is not a number";
+      return x >= 0 ? std::string() : v + " must be 0 or more";
     },
     "NONNEGATIVE");
 
@@ -346,7 +342,7 @@ int run_synth(const SynthOptions& o) {
   files.push_back(std::make_unique<OutputFile>((fs::path(o.out) / "truth.json").string()));
   nlohmann::json tj = truth_json(m, s, r);
   if (!prov) tj.erase("provenance");
-  files.back()->stream() << tj.dump(2) << "\n";
+  files.back()->stream() << json_text(tj, 2) << "\n";
   for (auto& f : files) f->commit();
   return 0;
 }

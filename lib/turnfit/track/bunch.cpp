@@ -6,6 +6,7 @@
 #include <atomic>
 #include <cmath>
 #include <exception>
+#include <functional>
 
 #include <Eigen/Dense>
 
@@ -290,7 +291,7 @@ std::vector<QuadratureNode> bunch_quadrature(const std::vector<BunchOffset>& sam
   return axis_nodes(centre, dirs, 1, 3);
 }
 
-std::vector<BunchOffset> read_bunch_file(const std::string& path) {
+BunchFile read_bunch_file(const std::string& path) {
   CsvTable t = CsvTable::read(path);
   const auto& known = bunch_columns();
   for (const auto& h : t.header())
@@ -298,15 +299,53 @@ std::vector<BunchOffset> read_bunch_file(const std::string& path) {
       throw data_error(t.name(), 0,
                        "unknown column '" + h + "' (a bunch file has dr_mm, dpr_mrad, dz_mm, dpz_mrad, dE_MeV, dphase_deg)");
   if (t.rows() == 0) throw data_error(t.name(), 0, "no particles (the file has a header but no rows)");
-  std::vector<BunchOffset> out(t.rows());
+  BunchFile out;
+  out.name = t.name();
+  out.offsets.resize(t.rows());
   double BunchOffset::*fields[] = {&BunchOffset::dr_mm, &BunchOffset::dpr_mrad, &BunchOffset::dz_mm,
                                    &BunchOffset::dpz_mrad, &BunchOffset::dE_MeV, &BunchOffset::dphase_deg};
   for (size_t c = 0; c < known.size(); ++c) {
     if (!t.has_column(known[c])) continue;
     const size_t col = t.column(known[c]);
-    for (size_t i = 0; i < t.rows(); ++i) out[i].*fields[c] = t.number(i, col);
+    for (size_t i = 0; i < t.rows(); ++i) out.offsets[i].*fields[c] = t.number(i, col);
+  }
+  for (size_t i = 0; i < t.rows(); ++i) out.lines.push_back(t.line(i));
+  return out;
+}
+
+namespace {
+
+/// offset_state of offsets[0, count); `where(i)` says where offset i came from when it fails.
+std::vector<ParticleState> start_states(const Injection& inj, double mass_MeV, double rf_MHz,
+                                        const std::vector<BunchOffset>& offsets, size_t count,
+                                        const std::function<Error(size_t, const Error&)>& where) {
+  std::vector<ParticleState> out;
+  out.reserve(count);
+  for (size_t i = 0; i < count; ++i) {
+    try {
+      out.push_back(offset_state(inj, mass_MeV, rf_MHz, offsets[i]));
+    } catch (const Error& e) {
+      throw where(i, e);
+    }
   }
   return out;
+}
+
+}  // namespace
+
+std::vector<ParticleState> offset_states(const Injection& inj, double mass_MeV, double rf_MHz, const BunchFile& file,
+                                         size_t count) {
+  if (count == 0 || count > file.offsets.size()) count = file.offsets.size();
+  return start_states(inj, mass_MeV, rf_MHz, file.offsets, count, [&](size_t i, const Error& e) {
+    return data_error(file.name, file.lines[i], e.what());
+  });
+}
+
+std::vector<ParticleState> offset_states(const Injection& inj, double mass_MeV, double rf_MHz,
+                                         const std::vector<BunchOffset>& offsets) {
+  return start_states(inj, mass_MeV, rf_MHz, offsets, offsets.size(), [](size_t i, const Error& e) {
+    return Error(e.code(), std::string(e.what()) + " (particle " + std::to_string(i) + ")");
+  });
 }
 
 ParticleState offset_state(const Injection& inj, double mass_MeV, double rf_MHz, const BunchOffset& o) {
@@ -334,7 +373,7 @@ ParticleState offset_state(const Injection& inj, double mass_MeV, double rf_MHz,
 
 std::vector<QuadratureNode> machine_bunch_quadrature(const Machine& m, const std::string& file) {
   const std::string f = !file.empty() ? file : m.bunch ? m.bunch->file : std::string();
-  if (!f.empty()) return bunch_quadrature(read_bunch_file(f));
+  if (!f.empty()) return bunch_quadrature(read_bunch_file(f).offsets);
   return m.bunch ? bunch_quadrature(*m.bunch) : std::vector<QuadratureNode>{};
 }
 

@@ -81,13 +81,28 @@ CentroidTurns centroid_turns(const TrackModel& model, const ParticleState& refer
                              double mass_MeV, const std::vector<QuadratureNode>& nodes, const TrackSettings& settings,
                              unsigned threads);
 
+/// Offsets read from a bunch file, with the line each came from.
+struct BunchFile {
+  std::string name;                 ///< the file as messages name it ("<stdin>" for "-")
+  std::vector<BunchOffset> offsets;  ///< one per row
+  std::vector<long> lines;          ///< each row's line in the file
+};
+
 /// Reads offsets from a CSV file with a header of bunch_columns() names ("-" for stdin);
 /// errors name the file and line.
-std::vector<BunchOffset> read_bunch_file(const std::string& path);
+BunchFile read_bunch_file(const std::string& path);
 
 /// The start state of a particle at `o` from the injection point. rf_MHz converts the phase
 /// offset to time (EX_DATAERR if a phase offset is asked for without RF).
 ParticleState offset_state(const Injection& inj, double mass_MeV, double rf_MHz, const BunchOffset& o);
+
+/// offset_state of the first `count` offsets of `file` (all for 0). An offset no particle can
+/// start from (no energy left, no forward momentum) is an error naming the file and its line.
+std::vector<ParticleState> offset_states(const Injection& inj, double mass_MeV, double rf_MHz, const BunchFile& file,
+                                         size_t count = 0);
+/// The same for offsets drawn, not read: an error names the particle's index.
+std::vector<ParticleState> offset_states(const Injection& inj, double mass_MeV, double rf_MHz,
+                                         const std::vector<BunchOffset>& offsets);
 
 /// Counts of probe crossings along a probe, in bins of the probe's step over the recorded
 /// radii (turns.csv's r_mm) the probe spans.

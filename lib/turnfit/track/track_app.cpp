@@ -253,14 +253,14 @@ int run_track(const TrackOptions& o) {
 
   if (bunch) {
     std::vector<BunchOffset> offs;
+    std::vector<ParticleState> starts;
     if (!bfile.empty()) {
-      offs = read_bunch_file(bfile);
-      if (n > 0) {
-        if (static_cast<size_t>(n) > offs.size())
-          throw usage_error("--particles " + std::to_string(n) + ": " + bfile + " has only " +
-                            std::to_string(offs.size()) + " particles");
-        offs.resize(static_cast<size_t>(n));
-      }
+      const BunchFile file = read_bunch_file(bfile);
+      if (n > 0 && static_cast<size_t>(n) > file.offsets.size())
+        throw usage_error("--particles " + std::to_string(n) + ": " + bfile + " has only " +
+                          std::to_string(file.offsets.size()) + " particles");
+      starts = offset_states(injection, m.particle.mass_MeV, model.rf_MHz, file, static_cast<size_t>(std::max(n, 0)));
+      offs.assign(file.offsets.begin(), file.offsets.begin() + static_cast<long>(starts.size()));
     } else {
       if (!m.bunch)
         throw data_error(m.path, 0, "/bunch: a bunch needs a distribution: the machine's bunch block "
@@ -270,15 +270,7 @@ int run_track(const TrackOptions& o) {
         cli::warn(o.common, "the bunch block has no spread (emittances, sigma_E_MeV, sigma_phase_deg all 0): " +
                                 std::to_string(n) + " identical particles");
       offs = gaussian_bunch(b, static_cast<size_t>(n), o.common.seed);
-    }
-    std::vector<ParticleState> starts;
-    starts.reserve(offs.size());
-    for (size_t i = 0; i < offs.size(); ++i) {
-      try {
-        starts.push_back(offset_state(injection, m.particle.mass_MeV, model.rf_MHz, offs[i]));
-      } catch (const Error& e) {
-        throw Error(e.code(), std::string(e.what()) + " (particle " + std::to_string(i) + ")");
-      }
+      starts = offset_states(injection, m.particle.mass_MeV, model.rf_MHz, offs);
     }
     const bool show = !o.common.quiet && cli::stderr_is_tty();
     std::atomic<size_t> shown{0};

@@ -14,6 +14,7 @@
 
 #include "turnfit/io/csv.hpp"
 #include "turnfit/io/error.hpp"
+#include "turnfit/io/text.hpp"
 #include "turnfit/io/json.hpp"
 #include "turnfit/io/output.hpp"
 #include "turnfit/synth/synth.hpp"
@@ -78,13 +79,9 @@ void add_tcfit_options(CLI::App& app, TcFitOptions& o) {
       ->check(CLI::Range(1.0, 1000.0))
       ->capture_default_str();
   app.add_option("--phase-azimuth-deg", [&o](const std::vector<std::string>& v) {
-    try {
-      o.phase_azimuth_deg = std::stod(v.at(0));
-    } catch (...) {
-      return false;
-    }
+    if (v.size() != 1 || !parse_decimal(v[0], o.phase_azimuth_deg)) return false;
     o.phase_azimuth_given = true;
-    return std::isfinite(o.phase_azimuth_deg);
+    return true;
   }, "--model tracked: azimuth of the phase probes [deg] (default: the scan's '# azimuth_deg=', else 0)");
   cli::add_common_options(app, o.common, cli::kOutput | cli::kFormat | cli::kThreads, {"json", "opal", "csv"});
 }
@@ -151,9 +148,8 @@ std::map<std::string, std::string> metadata(const std::vector<std::string>& comm
 double meta_number(const std::map<std::string, std::string>& kv, const std::string& key) {
   const auto it = kv.find(key);
   if (it == kv.end()) return 0;
-  char* end = nullptr;
-  const double v = std::strtod(it->second.c_str(), &end);
-  return end == it->second.c_str() || *end || !std::isfinite(v) ? 0 : v;
+  double v = 0;
+  return parse_decimal(trim(it->second), v) ? v : 0;
 }
 
 bool valid_coil_name(const std::string& s) {
@@ -633,7 +629,7 @@ void write_tcfit_output(std::ostream& os, const std::vector<CoilFit>& fits, cons
   for (const CoilFit& c : fits)
     if (c.error.empty()) arr.push_back(coil_json(c.coil));
   doc["trimcoils"] = arr;
-  os << doc.dump(2) << "\n";
+  os << json_text(doc, 2) << "\n";
 }
 
 nlohmann::json tcfit_report(const std::vector<CoilFit>& fits, const TcFitOptions& o) {
@@ -838,7 +834,7 @@ int run_tcfit(const TcFitOptions& o) {
   }
 
   // Outputs: the report always (it holds the failures), the result if any coil was fitted.
-  if (out_report) out_report->stream() << tcfit_report(fits, o).dump(2) << "\n";
+  if (out_report) out_report->stream() << json_text(tcfit_report(fits, o), 2) << "\n";
   if (ok == 0) {
     if (out_report) out_report->commit();
     if (worst == ExitCode::ok) worst = ExitCode::data;
@@ -871,7 +867,7 @@ int run_tcfit(const TcFitOptions& o) {
                                     ? std::string()
                                     : std::filesystem::absolute(o.common.output).parent_path().string();
     machine_from_json(doc, o.common.output.empty() ? "-" : o.common.output, out_dir);
-    os << doc.dump(2) << "\n";
+    os << json_text(doc, 2) << "\n";
   } else {
     write_tcfit_output(os, fits, o);
   }
