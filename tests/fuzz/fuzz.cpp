@@ -16,16 +16,17 @@ void bug(const std::string& what) {
 }
 
 const std::string& work_dir() {
-  static const std::string dir = [] {
-    std::string tmpl = (std::filesystem::temp_directory_path() / "turnfit-fuzz-XXXXXX").string();
-    if (!::mkdtemp(tmpl.data())) bug("cannot make a temporary folder");
+  // Never destroyed: the exit handler that removes the folder runs after static destructors.
+  static const std::string* dir = [] {
+    auto* tmpl = new std::string((std::filesystem::temp_directory_path() / "turnfit-fuzz-XXXXXX").string());
+    if (!::mkdtemp(tmpl->data())) bug("cannot make a temporary folder");
     std::atexit([] {
       std::error_code ec;
       std::filesystem::remove_all(work_dir(), ec);
     });
     return tmpl;
   }();
-  return dir;
+  return *dir;
 }
 
 std::string as_file(const std::uint8_t* data, std::size_t size, const std::string& name) {

@@ -8,6 +8,7 @@
 #include <new>
 
 #include "turnfit/io/error.hpp"
+#include "turnfit/io/interrupt.hpp"
 #include "turnfit/io/limits.hpp"
 #include "turnfit/io/parallel.hpp"
 #include "turnfit/version.hpp"
@@ -68,6 +69,7 @@ int run_tool(const std::string& tool, CLI::App& app, int argc, char** argv,
               << "Run '" << prog << " --help' for usage.\n";
     return static_cast<int>(ExitCode::usage);
   }
+  install_stop_handlers();
   try {
     return flushed(body());
   } catch (const Error& e) {

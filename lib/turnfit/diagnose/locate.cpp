@@ -42,7 +42,10 @@ NoiseEstimate estimate_noise(const TurnTable& measured, const std::vector<double
   out.sigma_mm.assign(n, 0);
   out.outlier.assign(n, 0);
   for (size_t p = 0; p < measured.probes.size(); ++p) {
-    auto [b, end] = measured.probe_range(static_cast<int>(p));
+    // Plain names, not a structured binding: lambdas below use them (C++17 forbids capturing a
+    // binding; clang enforces it).
+    const auto range = measured.probe_range(static_cast<int>(p));
+    const size_t b = range.first, end = range.second;
     // The scatter s and the trust c in the peaks' own uncertainties: sigma_i^2 = s^2 + c^2 u_i^2.
     // For each c on a grid, s from the median condition (robust); c by the likelihood of the
     // second differences (each capped at 4 sigma, so a bad triple cannot steer it).

@@ -51,6 +51,7 @@ OutputFile::OutputFile(const std::string& path) : path_(path.empty() ? "-" : pat
   if (fd < 0) throw Error(ExitCode::cant_create, path_ + ": cannot create: " + std::strerror(errno));
   ::close(fd);
   tmp_ = name.data();
+  stop_ = StopCleanup::path(tmp_);
   file_ = std::make_unique<std::ofstream>(tmp_, std::ios::binary | std::ios::trunc);
   if (!*file_) {
     std::remove(tmp_.c_str());
@@ -89,6 +90,7 @@ void OutputFile::commit() {
   ::chmod(tmp_.c_str(), 0666 & ~mask);
   if (std::rename(tmp_.c_str(), final_.c_str()) != 0)
     throw Error(ExitCode::cant_create, path_ + ": cannot rename into place: " + std::strerror(errno));
+  stop_.release();
   committed_ = true;
 }
 

@@ -6,6 +6,8 @@
 #include <ostream>
 #include <string>
 
+#include "turnfit/io/interrupt.hpp"
+
 namespace turnfit {
 
 /// An output that is either stdout ("-" or empty path) or a file written atomically:
@@ -38,6 +40,7 @@ class OutputFile {
   bool direct_ = false;  ///< writing straight into a device or FIFO
   std::unique_ptr<std::ofstream> file_;
   bool committed_ = false;
+  StopCleanup stop_;  ///< a stop signal removes the temporary
 };
 
 /// Writes a whole string to path atomically (or to stdout for "-").

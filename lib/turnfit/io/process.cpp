@@ -2,6 +2,8 @@
 // through pipes, all read and written in one poll loop with a deadline.
 #include "turnfit/io/process.hpp"
 
+#include "turnfit/io/interrupt.hpp"
+
 #include <fcntl.h>
 #include <poll.h>
 #include <spawn.h>
@@ -103,6 +105,8 @@ ProcessResult run_process(const ProcessSpec& spec) {
     return res;
   }
   res.started = true;
+  // A stop signal to the tool stops the child's group too (it is a group of its own).
+  const StopCleanup stop_child = StopCleanup::group(pid);
 
   size_t written = 0;
   if (spec.input.empty()) in_w.reset();

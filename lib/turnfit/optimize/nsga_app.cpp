@@ -166,6 +166,10 @@ PopulationLog parse_population_log(const std::string& text, const std::string& n
     } else if (kind == "eval") {
       Individual ind;
       try {
+        // A count, not any number: nlohmann converts 4e47 to an integer without a check.
+        for (const char* key : {"id", "gen"})
+          if (!j.at(key).is_number_unsigned())
+            throw data_error(name, line_no, std::string("bad \"eval\" record: \"") + key + "\" is not an integer >= 0");
         ind.id = j.at("id").get<std::uint64_t>();
         ind.generation = j.at("gen").get<size_t>();
         const auto& x = j.at("x");

@@ -293,9 +293,13 @@ RenderResult render_figure(const Figure& fig, const RenderOptions& o) {
   const bool to_stdout = o.image.empty() || o.image == "-";
   std::string tmpdir;
   std::string image = o.image;
+  std::vector<StopCleanup> stop;  // a stop signal removes the private folder and what is in it
   if (to_stdout) {
     tmpdir = make_temp_dir();
     image = tmpdir + "/figure" + ext;
+    stop.push_back(StopCleanup::path(tmpdir));
+    for (const char* f : {"/figure.png", "/figure.svg", "/figure.plot.csv", "/figure.gp"})
+      stop.push_back(StopCleanup::path(tmpdir + f));
   }
   struct Cleanup {
     std::string dir;
