@@ -1,5 +1,5 @@
 // Resource limits of every reader, in one place: hostile or broken input is refused with the
-// limit it hit, before it can exhaust memory, the stack or time (turnfit(7), LIMITS).
+// limit it hit, before it can exhaust memory, the stack or time (turnfit(1), LIMITS).
 #pragma once
 
 #include <cstddef>

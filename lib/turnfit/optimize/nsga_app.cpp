@@ -30,7 +30,9 @@ void add_nsga_options(CLI::App& app, NsgaOptions& o) {
       "NSGA-II (Deb et al. 2002) with constraint-domination, deterministic for a seed whatever the\n"
       "threads or MPI ranks. Writes one JSON line per evaluated design (the population log, also the\n"
       "checkpoint: --resume continues a killed run with no evaluation lost or repeated) and the final\n"
-      "non-dominated set (--front). Progress per generation on stderr.");
+      "non-dominated set (--front). Progress per generation on stderr.\n"
+      "A problem file's evaluator.command (and --eval-cmd) is run by /bin/sh once per design: a\n"
+      "problem file runs code, trust it as you would a Makefile (turnfit-problem(5), SECURITY).");
   app.add_option("--problem", o.problem,
                  "A built-in problem (" + [] {
                    std::string s;

@@ -139,12 +139,16 @@ std::string figure_script(const Figure& fig, const std::string& data_name, const
   const int w = fig.width_px > 0 ? fig.width_px : 1000;
   const int h = fig.height_px > 0 ? fig.height_px : 60 + 320 * static_cast<int>(np);
   std::ostringstream g;
-  std::string one_line = fig.title;
-  for (char& c : one_line)
-    if (c == '\n' || c == '\r') c = ' ';
+  // Comment lines: a line break in a title or a file name must not start a gnuplot command.
+  const auto one_line_of = [](std::string s) {
+    for (char& c : s)
+      if (c == '\n' || c == '\r') c = ' ';
+    return s;
+  };
+  const std::string one_line = one_line_of(fig.title);
   g << "# turnfit-plot " << fig.kind << (one_line.empty() ? "" : ": " + one_line) << "\n"
-    << fig.notes << "# Data: " << data_name << " (k,panel,series,x,y,y_lo,y_hi,label; a series is the rows of one k).\n"
-    << "# Redraw (from any folder): gnuplot " << image_name.substr(0, image_name.rfind('.')) << ".gp\n"
+    << fig.notes << "# Data: " << one_line_of(data_name) << " (k,panel,series,x,y,y_lo,y_hi,label; a series is the rows of one k).\n"
+    << "# Redraw (from any folder): gnuplot " << one_line_of(image_name.substr(0, image_name.rfind('.'))) << ".gp\n"
     << "# Other paths: gnuplot -e \"datafile='other.csv'; outfile='other.png'\" this.gp\n"
     << "lastslash(s) = strstrt(s, \"/\") == 0 ? 0 : strstrt(s, \"/\") + lastslash(s[strstrt(s, \"/\") + 1:])\n"
     << "dir = exists(\"ARG0\") ? ARG0[1:lastslash(ARG0)] : \"\"\n"

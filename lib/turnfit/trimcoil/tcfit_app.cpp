@@ -14,6 +14,7 @@
 
 #include "turnfit/io/csv.hpp"
 #include "turnfit/io/error.hpp"
+#include "turnfit/io/limits.hpp"
 #include "turnfit/io/text.hpp"
 #include "turnfit/io/json.hpp"
 #include "turnfit/io/output.hpp"
@@ -806,17 +807,18 @@ int run_tcfit(const TcFitOptions& o) {
         if (t.name == c.coil.name) c.coil.bmax_T = t.bmax_T;
   }
 
-  for (const std::string& e : file_errors) std::fprintf(stderr, "turnfit-tc-fit: %s\n", e.c_str());
+  for (const std::string& e : file_errors) std::fprintf(stderr, "turnfit-tc-fit: %s\n", clip_message(e).c_str());
   for (const CoilFit& c : fits) {
     if (!c.error.empty()) {
-      std::fprintf(stderr, "turnfit-tc-fit: coil %s (%s): %s\n", c.data.name.c_str(), c.data.source.c_str(), c.error.c_str());
+      std::fprintf(stderr, "turnfit-tc-fit: %s\n",
+                   clip_message("coil " + c.data.name + " (" + c.data.source + "): " + c.error).c_str());
       continue;
     }
     if (o.common.quiet) continue;
     std::fprintf(stderr,
                  "turnfit-tc-fit: %s: degrees %d/%d (%s), %zu points in %.6g-%.6g mm, rms %.3g, max %.3g, "
                  "condition %.3g, peak at %.6g mm\n",
-                 c.data.name.c_str(), c.fit.n, c.fit.m, c.selected_by.c_str(), c.fit.points, c.r_lo_mm, c.r_hi_mm,
+                 clip_message(c.data.name).c_str(), c.fit.n, c.fit.m, c.selected_by.c_str(), c.fit.points, c.r_lo_mm, c.r_hi_mm,
                  c.fit.rms, c.fit.max_abs, c.fit.condition, c.peak_r_mm);
     double s_lo, s_hi, d;
     fitted_shape(c, c.r_lo_mm, s_lo, d);
