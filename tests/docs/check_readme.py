@@ -33,6 +33,7 @@ import os
 import re
 import shlex
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
@@ -251,15 +252,18 @@ def make_sandbox(root, repo, bin_dir, shared):
 
 def run_block(spec, work, env):
     merged = spec["show"] == "output"
+    # A session of its own, so a timeout stops the whole command (make and the tools it runs),
+    # not only its shell: an orphaned diagnosis once ran on for 20 minutes after its test.
+    p = subprocess.Popen(["sh", "-e", "-c", spec["command"]], cwd=work, env=env, stdout=subprocess.PIPE,
+                         stderr=subprocess.STDOUT if merged else subprocess.PIPE, start_new_session=True)
     try:
-        p = subprocess.run(["sh", "-e", "-c", spec["command"]], cwd=work, env=env,
-                           stdout=subprocess.PIPE,
-                           stderr=subprocess.STDOUT if merged else subprocess.PIPE,
-                           timeout=spec["timeout"])
+        out, err = p.communicate(timeout=spec["timeout"])
     except subprocess.TimeoutExpired:
+        os.killpg(p.pid, signal.SIGKILL)
+        p.communicate()
         return None, "timed out after %g s" % spec["timeout"]
-    out = p.stdout.decode("utf-8", "replace")
-    err = "" if merged else p.stderr.decode("utf-8", "replace")
+    out = out.decode("utf-8", "replace")
+    err = "" if merged else err.decode("utf-8", "replace")
     problems = []
     if p.returncode != spec["exit"]:
         problems.append("exit %d, README says %d" % (p.returncode, spec["exit"]))
