@@ -12,7 +12,8 @@ duration (seeded: the same moments every time). After each:
     partial one (the command is deterministic, so a finished one is the same again);
   - INT and TERM leave no temporary (*.tmp.* beside an output, turnfit's atomic writer); KILL
     cannot clean up, so its temporaries are counted and removed.
-One line per run on stdout, then "all N stopped runs left the outputs intact". Exit 1 on a failure.
+At least one run must have been ended by the signal. One line per run on stdout, then "all N
+stopped runs left the outputs intact". Exit 1 on a failure.
 """
 import argparse
 import glob
@@ -54,6 +55,7 @@ def main():
 
     rng = random.Random(a.seed)
     failed = False
+    stopped = 0
     for i in range(1, a.times + 1):
         delay = rng.uniform(0.05, 0.95) * took
         # Its own session: the shell's job control does not ignore INT for it, and it is the
@@ -80,6 +82,12 @@ def main():
               % (i, a.signal, delay, took, how, "intact" if not problems else "NOT intact", len(left),
                  "" if not problems else " (" + "; ".join(problems) + ")"))
         failed = failed or bool(problems)
+        stopped += rc == -sig
+    # A run that always finishes first tests nothing (a handler that never re-raises, a signal
+    # inherited as ignored, a command too quick for its moments).
+    if not stopped:
+        print("none of the %d runs was ended by SIG%s" % (a.times, a.signal))
+        failed = True
     if failed:
         sys.exit(1)
     print("all %d stopped runs left the outputs intact" % a.times)

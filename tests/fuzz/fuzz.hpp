@@ -15,6 +15,10 @@ namespace turnfit::fuzz {
 /// Reports a bug (libFuzzer and the replay both take an abort as one) with what was thrown.
 [[noreturn]] void bug(const std::string& what);
 
+/// Set by guarded() when a reader refused its input (the replay checks that a regression input
+/// is still refused and a seed still accepted; libFuzzer ignores it).
+inline bool refused = false;
+
 /// Runs one input through a reader. A refusal is the reader doing its job: a turnfit::Error
 /// with a user's exit code (64, 65, 66) and a message. Anything else is a bug: another
 /// exception (a library's own, which a tool would report as "internal error", exit 70), an
@@ -24,6 +28,7 @@ int guarded(F&& f) {
   try {
     f();
   } catch (const Error& e) {
+    refused = true;
     const int code = static_cast<int>(e.code());
     if (code != 64 && code != 65 && code != 66) bug("exit " + std::to_string(code) + ": " + e.what());
     if (std::string(e.what()).empty()) bug("a refusal without a message");

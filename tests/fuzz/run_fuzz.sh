@@ -16,7 +16,9 @@ shift 2
 shared="${SHARED:-$root/../shared}"
 formats=("$@")
 if [ ${#formats[@]} -eq 0 ]; then
-  for exe in "$build"/tests/fuzz/fuzz_*; do formats+=("$(basename "$exe" | sed 's/^fuzz_//')"); done
+  for exe in "$build"/tests/fuzz/fuzz_*; do
+    [ -x "$exe" ] && formats+=("$(basename "$exe" | sed 's/^fuzz_//')")
+  done
 fi
 [ ${#formats[@]} -gt 0 ] || { echo "run_fuzz: no fuzz targets in $build/tests/fuzz (configure with -DTURNFIT_FUZZ=ON)" >&2; exit 2; }
 
@@ -44,7 +46,7 @@ for f in "${formats[@]}"; do
   found="nothing"
   if [ $rc -ne 0 ]; then
     failed=1
-    found="$(grep -m1 -oE 'ERROR: (libFuzzer|AddressSanitizer|LeakSanitizer|UndefinedBehaviorSanitizer)[^\n]*|runtime error: .*|BUG: .*' "$log" | head -1) (exit $rc; $log; inputs in $artifacts)"
+    found="$(grep -m1 -oE 'ERROR: (libFuzzer|AddressSanitizer|LeakSanitizer|UndefinedBehaviorSanitizer).*|runtime error: .*|BUG: .*' "$log" | head -1) (exit $rc; $log; inputs in $artifacts)"
   fi
   printf '%-16s %10s %8s %8s  %s\n' "$f" "${execs:-?}" "$took" "$(ls "$corpus" | wc -l)" "$found"
 done

@@ -275,6 +275,11 @@ SectorFieldSpec sector_spec_from_json(const json& doc, const std::string& name) 
   if (!(s.grid.dr_mm > 0)) throw g.error("dr_mm", "must be > 0");
   if (s.grid.nr < 4 || s.grid.nr > 100000) throw g.error("nr", "must be in [4, 100000]");
   if (s.grid.ntheta < 4 || s.grid.ntheta > 100000) throw g.error("ntheta", "must be in [4, 100000]");
+  try {
+    check_grid_size(s.grid.nr, s.grid.ntheta);  // before make_sector_field allocates the samples
+  } catch (const Error& e) {
+    throw g.error("nr", e.what());
+  }
   s.fringe_mm = top.number("fringe_mm");
   s.valley_fraction = top.number("valley_fraction", 0.0);
   if (!top.has("width")) throw top.error("width", "missing required key");

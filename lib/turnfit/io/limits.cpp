@@ -54,7 +54,9 @@ void append_printable(std::string& out, std::string_view s, std::size_t from, st
 
 /// The start of the character at or before i (so a cut never splits a UTF-8 sequence).
 std::size_t char_start(std::string_view s, std::size_t i) {
-  while (i > 0 && i < s.size() && (static_cast<unsigned char>(s[i]) & 0xC0) == 0x80) --i;
+  // At most 3 steps: a UTF-8 sequence has at most 3 continuation bytes (a longer run of them is
+  // not UTF-8, and is escaped byte by byte wherever it is cut).
+  for (int k = 0; k < 3 && i > 0 && i < s.size() && (static_cast<unsigned char>(s[i]) & 0xC0) == 0x80; ++k) --i;
   return i;
 }
 

@@ -22,6 +22,8 @@ constexpr int kJsonDepth = 64;
 /// Points of a field map grid (ring8: 21060, the PSI Ring's: 141 x 360). A map's spline costs
 /// about 200 bytes per point.
 constexpr long kGridPoints = 1L << 22;
+/// Lines of one line-based input (its line views cost 16 bytes each).
+constexpr std::size_t kLines = 20000000;
 /// Data rows of one CSV table (a bunch of 10 million particles).
 constexpr std::size_t kTableRows = 10000000;
 /// Characters of a user's text echoed back in a message.

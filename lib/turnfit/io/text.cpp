@@ -77,6 +77,11 @@ std::vector<std::string_view> split_lines(std::string_view text) {
 }
 
 std::vector<std::string_view> split_lines(std::string_view text, const std::string& name) {
+  // Counted before the views are built (16 bytes each: 256 MiB of newlines would take 4 GiB).
+  const auto count = static_cast<std::size_t>(std::count(text.begin(), text.end(), '\n'));
+  if (count > limits::kLines)
+    throw data_error(name, 0, std::to_string(count) + " lines: more than the " + std::to_string(limits::kLines) +
+                                  " lines one input may hold");
   std::vector<std::string_view> lines = split_lines(text);
   for (std::size_t i = 0; i < lines.size(); ++i)
     if (lines[i].size() > limits::kLineBytes)

@@ -287,7 +287,7 @@ void revalidate_after(Machine& m, const Machine& before, const std::vector<Write
       apply_write(step, w);
       try {
         revalidate(step);
-      } catch (const Error& e) {
+      } catch (const std::exception& e) {  // an intermediate state is not validated otherwise
         throw make_error(w.name + " = " + num(w.value) + " makes the machine invalid: " + e.what());
       }
     }

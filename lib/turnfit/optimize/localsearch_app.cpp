@@ -142,9 +142,9 @@ std::vector<double> read_start(const TurnPatternProblem& p, const std::string& p
     bool log = false;
     if (std::getline(in, line)) {
       try {
-        first_doc = nlohmann::json::parse(line);
+        first_doc = parse_json(line, file);
         log = first_doc.is_object() && first_doc.contains("record");
-      } catch (const nlohmann::json::exception&) {
+      } catch (const Error&) {
         log = false;
       }
     }
@@ -154,8 +154,8 @@ std::vector<double> read_start(const TurnPatternProblem& p, const std::string& p
         if (line.empty()) continue;
         nlohmann::json rec;
         try {
-          rec = nlohmann::json::parse(line);
-        } catch (const nlohmann::json::exception&) {
+          rec = parse_json(line, file);  // the depth and NUL checks of every JSON input
+        } catch (const Error&) {
           continue;  // a torn last line of a killed run
         }
         if (rec.is_object() && rec.value("record", "") == "eval") designs.push_back(rec);

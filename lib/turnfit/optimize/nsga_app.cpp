@@ -338,19 +338,29 @@ int run_nsga(const NsgaOptions& o) {
   // It is written from the first record the search makes, so that a run refused before its
   // first evaluation (a resumed log whose records do not fit this run) leaves a file it names
   // as it was, and no new file behind. Whether it can be written is checked now.
+  // A FIFO or device is opened at once (a probe open and close would end a reader's input).
   struct NewLog {
     std::string path;  ///< a file this run created, removed unless a record went into it
     bool kept = false;
+    StopCleanup stop;  ///< a stop signal before the first record removes it too
     ~NewLog() {
       if (!path.empty() && !kept) std::remove(path.c_str());
     }
   } new_log;
-  if (out_path != "-" && !append) {
+  bool open_now = false;
+  if (out_path != "-") {
     struct stat st {};
     const bool existed = ::stat(out_path.c_str(), &st) == 0;
-    std::ofstream probe(out_path, std::ios::binary | std::ios::app);
-    if (!probe) throw Error(ExitCode::cant_create, out_path + ": cannot open: " + std::strerror(errno));
-    if (!existed) new_log.path = out_path;
+    if (existed && !S_ISREG(st.st_mode)) {
+      open_now = true;
+    } else {
+      std::ofstream probe(out_path, std::ios::binary | std::ios::app);  // creates, never truncates
+      if (!probe) throw Error(ExitCode::cant_create, out_path + ": cannot open: " + std::strerror(errno));
+      if (!existed) {
+        new_log.path = out_path;
+        new_log.stop = StopCleanup::path(out_path);
+      }
+    }
   }
   std::ofstream file;
   std::ostream* out = nullptr;
@@ -358,6 +368,7 @@ int run_nsga(const NsgaOptions& o) {
   const auto open_log = [&] {
     if (out) return;
     new_log.kept = true;
+    new_log.stop.release();
     if (out_path == "-") {
       out = &std::cout;
     } else {
@@ -373,6 +384,8 @@ int run_nsga(const NsgaOptions& o) {
     out->flush();
     write_failed = !*out;
   };
+
+  if (open_now) open_log();
 
   const bool quiet = o.common.quiet;
   Nsga2Callbacks cb;

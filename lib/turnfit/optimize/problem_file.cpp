@@ -92,12 +92,13 @@ Evaluation parse_command_answer(const std::string& out, const std::vector<std::s
   e.ok = false;
   nlohmann::json j;
   // The whole output, else its last line (a command may print progress before its answer).
+  // parse_json: an answer nested past the limit or holding a NUL is no answer (issue 18).
   try {
-    j = nlohmann::json::parse(out);
-  } catch (const nlohmann::json::exception&) {
+    j = parse_json(out, "answer");
+  } catch (const Error&) {
     try {
-      j = nlohmann::json::parse(last_line(out));
-    } catch (const nlohmann::json::exception&) {
+      j = parse_json(last_line(out), "answer");
+    } catch (const Error&) {
       e.reason = out.find_first_not_of(" \t\r\n") == std::string::npos
                      ? "the command printed no answer"
                      : "the command's answer is not JSON: " + last_line(out);
