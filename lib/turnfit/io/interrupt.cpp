@@ -40,6 +40,7 @@ void install_stop_handlers() {
   struct sigaction sa {};
   sa.sa_handler = on_stop;
   sigemptyset(&sa.sa_mask);
+  for (int sig : {SIGINT, SIGTERM, SIGHUP}) sigaddset(&sa.sa_mask, sig);  // one stop at a time
   for (int sig : {SIGINT, SIGTERM, SIGHUP}) {
     // A signal the caller ignores (nohup, a background job's SIGINT) stays ignored.
     struct sigaction old {};
@@ -47,6 +48,15 @@ void install_stop_handlers() {
     ::sigaction(sig, &sa, nullptr);
   }
 }
+
+StopSignalsHeld::StopSignalsHeld() {
+  sigset_t stops;
+  sigemptyset(&stops);
+  for (int sig : {SIGINT, SIGTERM, SIGHUP}) sigaddset(&stops, sig);
+  ::pthread_sigmask(SIG_BLOCK, &stops, &old_);
+}
+
+StopSignalsHeld::~StopSignalsHeld() { ::pthread_sigmask(SIG_SETMASK, &old_, nullptr); }
 
 StopCleanup StopCleanup::path(const std::string& path) {
   StopCleanup c;

@@ -2,6 +2,7 @@
 // orphaned children behind, and with the signal's own status (a shell sees 130, 143, 129).
 #pragma once
 
+#include <signal.h>
 #include <sys/types.h>
 
 #include <string>
@@ -13,6 +14,20 @@ namespace turnfit {
 /// to every registered child process group, restores the default action and raises the signal
 /// again, so that the tool ends as interrupted. Everything it does is async-signal-safe.
 void install_stop_handlers();
+
+/// Holds SIGINT, SIGTERM and SIGHUP back on this thread while it lives (they are delivered when it
+/// ends): wrap the creation of a temporary or a child and its registration in one, so that no
+/// stop falls between the two.
+class StopSignalsHeld {
+ public:
+  StopSignalsHeld();
+  ~StopSignalsHeld();
+  StopSignalsHeld(const StopSignalsHeld&) = delete;
+  StopSignalsHeld& operator=(const StopSignalsHeld&) = delete;
+
+ private:
+  sigset_t old_;
+};
 
 /// What a stop removes or stops while it is registered: a temporary path (an output's temporary
 /// before its rename, a private folder) or a child's process group. Unregistered when destroyed.

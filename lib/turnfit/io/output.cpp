@@ -47,11 +47,14 @@ OutputFile::OutputFile(const std::string& path) : path_(path.empty() ? "-" : pat
   std::vector<char> name(target.begin(), target.end());
   const char suffix[] = ".tmp.XXXXXX";
   name.insert(name.end(), suffix, suffix + sizeof suffix);  // includes the NUL
-  int fd = ::mkstemp(name.data());
-  if (fd < 0) throw Error(ExitCode::cant_create, path_ + ": cannot create: " + std::strerror(errno));
-  ::close(fd);
-  tmp_ = name.data();
-  stop_ = StopCleanup::path(tmp_);
+  {
+    const StopSignalsHeld held;  // no stop between the temporary's creation and its registration
+    const int fd = ::mkstemp(name.data());
+    if (fd < 0) throw Error(ExitCode::cant_create, path_ + ": cannot create: " + std::strerror(errno));
+    ::close(fd);
+    tmp_ = name.data();
+    stop_ = StopCleanup::path(tmp_);
+  }
   file_ = std::make_unique<std::ofstream>(tmp_, std::ios::binary | std::ios::trunc);
   if (!*file_) {
     std::remove(tmp_.c_str());

@@ -92,9 +92,18 @@ ProcessResult run_process(const ProcessSpec& spec) {
   for (auto& a : args) argv.push_back(a.data());
   argv.push_back(nullptr);
   pid_t pid = 0;
-  const int rc = args[0].find('/') == std::string::npos
-                     ? posix_spawnp(&pid, args[0].c_str(), &fa, &attr, argv.data(), environ)
-                     : posix_spawn(&pid, args[0].c_str(), &fa, &attr, argv.data(), environ);
+  int rc = 0;
+  // A stop signal to the tool stops the child's group too (it is a group of its own, which a
+  // terminal's ^C does not reach); none may fall between the spawn and the registration. The
+  // child starts with no signal blocked (its attributes set the mask).
+  StopCleanup stop_child;
+  {
+    const StopSignalsHeld held;
+    rc = args[0].find('/') == std::string::npos
+             ? posix_spawnp(&pid, args[0].c_str(), &fa, &attr, argv.data(), environ)
+             : posix_spawn(&pid, args[0].c_str(), &fa, &attr, argv.data(), environ);
+    if (rc == 0) stop_child = StopCleanup::group(pid);
+  }
   posix_spawn_file_actions_destroy(&fa);
   posix_spawnattr_destroy(&attr);
   in_r.reset();
@@ -105,8 +114,6 @@ ProcessResult run_process(const ProcessSpec& spec) {
     return res;
   }
   res.started = true;
-  // A stop signal to the tool stops the child's group too (it is a group of its own).
-  const StopCleanup stop_child = StopCleanup::group(pid);
 
   size_t written = 0;
   if (spec.input.empty()) in_w.reset();

@@ -354,6 +354,7 @@ int run_nsga(const NsgaOptions& o) {
     if (existed && !S_ISREG(st.st_mode)) {
       open_now = true;
     } else {
+      const StopSignalsHeld held;  // no stop between the creation and the registration
       std::ofstream probe(out_path, std::ios::binary | std::ios::app);  // creates, never truncates
       if (!probe) throw Error(ExitCode::cant_create, out_path + ": cannot open: " + std::strerror(errno));
       if (!existed) {
