@@ -69,11 +69,11 @@ Eigen::MatrixXd periodic_slopes(const Eigen::MatrixXd& y) {
 double PolarGrid::dtheta_rad() const { return 2 * kPi / (static_cast<double>(symmetry) * ntheta); }
 double PolarGrid::theta_min_rad() const { return theta_min_deg * kPi / 180.0; }
 
-void check_grid_size(long nr, long ntheta) {
+void check_grid_size(long nr, long ntheta, const std::string& file, long line) {
   if (nr > limits::kGridPoints || ntheta > limits::kGridPoints || nr * ntheta > limits::kGridPoints)
-    throw Error(ExitCode::data, "field map: a grid of " + std::to_string(nr) + " x " + std::to_string(ntheta) +
-                                    " points is larger than the " + std::to_string(limits::kGridPoints) +
-                                    " points a map may hold (the limit)");
+    throw data_error(file, line, "a grid of " + std::to_string(nr) + " x " + std::to_string(ntheta) +
+                                     " points is larger than the " + std::to_string(limits::kGridPoints) +
+                                     " points a map may hold (the limit)");
 }
 
 PolarFieldMap::PolarFieldMap(const PolarGrid& grid, std::vector<double> bz_T, std::string label)

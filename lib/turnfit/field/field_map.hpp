@@ -40,9 +40,9 @@ struct PolarGrid {
   double r_max_m() const { return (r_min_mm + (nr - 1) * dr_mm) * 1e-3; }
 };
 
-/// Refuses (EX_DATAERR, naming the limit) a grid of more than limits::kGridPoints points, before
-/// a reader allocates for it.
-void check_grid_size(long nr, long ntheta);
+/// Refuses (EX_DATAERR "file:line: ...", naming the limit) a grid of more than
+/// limits::kGridPoints points, before a reader allocates for it.
+void check_grid_size(long nr, long ntheta, const std::string& file = "field map", long line = 0);
 
 /// The spline along radius at fixed sub-cell azimuths: for each radial cell i, azimuthal cell j
 /// and offset slot s (an azimuth theta_min + (j + v_s) dtheta), the patch's polynomials in v

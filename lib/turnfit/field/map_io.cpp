@@ -25,6 +25,15 @@ int symmetry_from_grid(int ntheta, double dtheta_deg, const std::string& name, l
                          " deg do not cover a whole sector (360/N deg for an integer N)");
   return static_cast<int>(k);
 }
+/// The map of a reader's grid and values; what the constructor refuses names the file.
+PolarFieldMap map_named(const std::string& name, const PolarGrid& g, std::vector<double> bz, const std::string& label) {
+  try {
+    return PolarFieldMap(g, std::move(bz), label);
+  } catch (const Error& e) {
+    throw data_error(name, 0, e.what());
+  }
+}
+
 }  // namespace
 
 MapFormat parse_map_format(const std::string& name) {
@@ -81,11 +90,7 @@ PolarFieldMap parse_psi_ring(const std::string& text, const std::string& name, i
   if (nr < 2 || nr > 100000 || nt < 1 || nt > 100000)
     throw data_error(name, lpar_line + 2, "implausible grid size " + std::to_string(nr) + " x " +
                                               std::to_string(nt));
-  try {
-    check_grid_size(nr, nt);
-  } catch (const Error& e) {
-    throw data_error(name, lpar_line + 2, e.what());
-  }
+  check_grid_size(nr, nt, name, lpar_line + 2);
   int sym = symmetry_from_grid(static_cast<int>(nt), head[3], name, head_line[3]);
   if (symmetry > 0 && symmetry != sym)
     throw data_error(name, head_line[3], "grid covers 360/" + std::to_string(sym) +
@@ -141,11 +146,7 @@ PolarFieldMap parse_psi_ring(const std::string& text, const std::string& name, i
       label = std::string(trim(l.substr(l.find("LABEL=") + 6)));
       break;
     }
-  try {
-    return PolarFieldMap(g, std::move(bz), label);
-  } catch (const Error& e) {
-    throw data_error(name, 0, e.what());
-  }
+  return map_named(name, g, std::move(bz), label);
 }
 
 PolarFieldMap parse_turnfit_map(const std::string& text, const std::string& name) {
@@ -202,11 +203,7 @@ PolarFieldMap parse_turnfit_map(const std::string& text, const std::string& name
   if (missing) throw data_error(name, 0, std::string("header lacks '") + missing + "'");
   if (nr < 2 || nt < 1 || sym < 1 || !(dr_mm > 0) || r_min_mm < 0)
     throw data_error(name, 0, "invalid grid (need nr >= 2, ntheta >= 1, symmetry >= 1, dr_mm > 0, r_min_mm >= 0)");
-  try {
-    check_grid_size(nr, nt);
-  } catch (const Error& e) {
-    throw data_error(name, 0, e.what());
-  }
+  check_grid_size(nr, nt, name);
   const double factor = unit == "kG" ? kKiloGauss : 1.0;
   std::vector<double> bz;
   bz.reserve(static_cast<size_t>(nr * nt));
@@ -232,11 +229,7 @@ PolarFieldMap parse_turnfit_map(const std::string& text, const std::string& name
   g.theta_min_deg = theta_min_deg;
   g.ntheta = static_cast<int>(nt);
   g.symmetry = static_cast<int>(sym);
-  try {
-    return PolarFieldMap(g, std::move(bz), label);
-  } catch (const Error& e) {
-    throw data_error(name, 0, e.what());
-  }
+  return map_named(name, g, std::move(bz), label);
 }
 
 PolarFieldMap read_field_map(const std::string& path, MapFormat format, int symmetry) {
