@@ -2,10 +2,13 @@
 // injection, OPAL's gap handling, and the PSI Ring run against OPAL's anchors (physics.md).
 #include <catch2/catch.hpp>
 #include <cmath>
+#include <filesystem>
 #include <vector>
 
 #include "../support.hpp"
 #include "turnfit/field/opal_map.hpp"
+#include "turnfit/io/text.hpp"
+#include "turnfit/opal/opal_io.hpp"
 #include "turnfit/physics/particle.hpp"
 #include "turnfit/track/tracker.hpp"
 
@@ -60,7 +63,6 @@ OpalRun opal_run(const Machine& mach, int steps_per_turn, bool compat_gaps = tru
   r.x0 = x0_rows(r.model, turns);
   return r;
 }
-}  // namespace
 
 TEST_CASE("opal map: exact for a bilinear field, with exact derivatives", "[track][opal]") {
   // Bilinear interpolation reproduces a + b r + c theta + d r theta, and the 5-point stencils
@@ -200,25 +202,23 @@ TEST_CASE("opal injection: p_theta in single precision, only when asked", "[trac
   CHECK(d.py == e.py);
 }
 
-TEST_CASE("opal compat: the PSI Ring run lands on OPAL's anchors (physics.md)", "[track][opal][shared]") {
-  TURNFIT_REQUIRE_SHARED(path, "data/psi-ring/bfield.dat");
-  const Machine mach = load_machine(aeo_machine());
+// physics.md's anchors of OPAL's run of cyclotron2.in (trim coil on the full circle).
+void check_opal_anchors(const Machine& mach) {
   const OpalRun run = opal_run(mach, 2880);
   const TrackModel& m = run.model;
   REQUIRE_FALSE(run.end.lost);
   REQUIRE(run.kicks.size() >= 3);
   // Tolerances: one unit of the anchor's last printed digit ("near" values: their rounding).
-  // First kick Rf1 (main2): RF phase -4.955 deg, T 0.9695, dE +0.4637 MeV.
-  CHECK(m.gaps[run.kicks[0].gap].name() == "main2");
+  // First kick Rf1 (main2 in aeo.json): RF phase -4.955 deg, T 0.9695, dE +0.4637 MeV.
+  CHECK(m.gaps[run.kicks[0].gap].name() == mach.cavities[1].name);
   CHECK(run.kicks[0].kick.phase_deg == Approx(-4.955).epsilon(0).margin(0.001));
   CHECK(run.kicks[0].kick.transit == Approx(0.9695).epsilon(0).margin(1e-4));
   CHECK(run.kicks[0].kick.de_MeV == Approx(0.4637).epsilon(0).margin(1e-4));
-  // Then Rf3 (main3) near -3.64 deg, +0.4677 MeV.
-  CHECK(m.gaps[run.kicks[1].gap].name() == "main3");
+  // Then Rf3 near -3.64 deg, +0.4677 MeV.
   CHECK(run.kicks[1].kick.phase_deg == Approx(-3.64).epsilon(0).margin(0.01));
   CHECK(run.kicks[1].kick.de_MeV == Approx(0.4677).epsilon(0).margin(1e-4));
-  // Then the flat-top Rf2 (ft) near 164.5 deg, T 0.8206, -0.1255 MeV.
-  CHECK(m.gaps[run.kicks[2].gap].name() == "ft");
+  // Then the flat-top Rf2 near 164.5 deg, T 0.8206, -0.1255 MeV.
+  CHECK(m.gaps[run.kicks[2].gap].name() == (mach.cavities.size() == 5 && mach.cavities[4].name == "ft" ? "ft" : "Rf2"));
   CHECK(run.kicks[2].kick.phase_deg == Approx(164.5).epsilon(0).margin(0.1));
   CHECK(run.kicks[2].kick.transit == Approx(0.8206).epsilon(0).margin(1e-4));
   CHECK(run.kicks[2].kick.de_MeV == Approx(-0.1255).epsilon(0).margin(1e-4));
@@ -233,6 +233,31 @@ TEST_CASE("opal compat: the PSI Ring run lands on OPAL's anchors (physics.md)", 
   // differ by up to 0.032 mm at azimuth 0, hence 0.05 mm here.
   CHECK(run.x0[189].r_mm == Approx(4402.80).epsilon(0).margin(0.05));
   CHECK(run.x0[189].energy_MeV == Approx(590.53).epsilon(0).margin(0.01));
+}
+}  // namespace
+
+TEST_CASE("opal compat: the PSI Ring run lands on OPAL's anchors (physics.md)", "[track][opal][shared]") {
+  TURNFIT_REQUIRE_SHARED(path, "data/psi-ring/bfield.dat");
+  check_opal_anchors(load_machine(aeo_machine()));
+}
+
+TEST_CASE("opal compat: cyclotron2.in imported by turnfit-import-opal lands on OPAL's anchors",
+          "[track][opal][shared]") {
+  TURNFIT_REQUIRE_SHARED(path, "data/psi-ring/cyclotron2.in");
+  // The anchors are OPAL's run with the trim coil on the full circle (physics.md): the input
+  // with PHIMIN = 0, PHIMAX = 360 added to tc1, read from the input's own folder.
+  std::string text = read_input(path).text;
+  const std::string coil = "BMAX=1.4e-3, SLPTC=0.6;";
+  const size_t at = text.find(coil);
+  REQUIRE(at != std::string::npos);
+  text.replace(at, coil.size(), "BMAX=1.4e-3, SLPTC=0.6, PHIMIN=0, PHIMAX=360;");
+  const std::string dir = std::filesystem::path(path).parent_path().string();
+  nlohmann::json doc = import_opal(text, path, dir, dir).machine;
+  doc["probes"] = nlohmann::json::array({{{"name", "X0"}, {"phi_deg", 0.0}, {"s_min_mm", 1900.0}, {"s_max_mm", 4600.0}}});
+  const Machine mach = machine_from_json(doc, "imported cyclotron2.in", dir);
+  REQUIRE(mach.cavities.size() == 5);
+  REQUIRE(mach.cavities[1].name == "Rf1");
+  check_opal_anchors(mach);
 }
 
 TEST_CASE("opal compat: OPAL's gap-time estimate is what opal_compat changes, by <= 0.008 mm",
@@ -255,7 +280,8 @@ TEST_CASE("opal compat: OPAL's gap-time estimate is what opal_compat changes, by
 TEST_CASE("opal compat: the default path is unchanged", "[track][opal][shared][regression]") {
   // Regression: guards that turnfit's default (spline map, azimuth integrator, exact gaps,
   // Faraday deflection) and its rk4 variant still give the PSI Ring turns the README shows
-  // (X0 turn 1 at 2144.160142 mm; turn 190 at 4400.611717 mm, 590.200454 MeV), i.e. that no
+  // (X0 turn 1 at 2144.160046 mm; turn 190 at 4400.605107 mm, 590.197635 MeV; the flat-top at
+  // cyclotron2.in's 0.55590304 MV since issue 19), i.e. that no
   // OPAL-compatible choice leaks into the default. These are turnfit's own values, not OPAL's
   // (OPAL: 2144.41, 4402.80, 590.53): they are trusted because the same path with OPAL's
   // deflection lands on OPAL's anchors moved by the documented interpolation effect (test_track:
@@ -279,8 +305,8 @@ TEST_CASE("opal compat: the default path is unchanged", "[track][opal][shared][r
     REQUIRE_FALSE(end.lost);
     const std::vector<TurnRecord> x0 = x0_rows(m, turns);
     REQUIRE(x0.size() == 190);
-    CHECK(x0[0].r_mm == Approx(2144.160142).epsilon(0).margin(0.005));
-    CHECK(x0[189].r_mm == Approx(4400.611717).epsilon(0).margin(0.005));
-    CHECK(x0[189].energy_MeV == Approx(590.200454).epsilon(0).margin(0.003));
+    CHECK(x0[0].r_mm == Approx(2144.160046).epsilon(0).margin(0.005));
+    CHECK(x0[189].r_mm == Approx(4400.605107).epsilon(0).margin(0.005));
+    CHECK(x0[189].energy_MeV == Approx(590.197635).epsilon(0).margin(0.003));
   }
 }

@@ -22,6 +22,8 @@ const char* const kTools[][2] = {
     {"nsga", "NSGA-II with constraints: threads or MPI, population log that resumes a killed run"},
     {"localsearch", "fit a turn-pattern problem's design variables: Levenberg-Marquardt, uncertainties"},
     {"diagnose", "what physics the model lacks: locate the mismatch, name the effect, refit"},
+    {"import-opal", "an OPAL-cycl input as a turnfit machine, with every unused line explained"},
+    {"export-opal", "a turnfit machine (and a fit) as an OPAL-cycl input that imports back"},
 };
 
 void usage(std::ostream& os) {

@@ -1,0 +1,149 @@
+// turnfit-import-opal and turnfit-export-opal: options and runs.
+#include <filesystem>
+#include <iostream>
+#include <sstream>
+
+#include "turnfit/field/map_io.hpp"
+#include "turnfit/io/error.hpp"
+#include "turnfit/io/json.hpp"
+#include "turnfit/io/output.hpp"
+#include "turnfit/io/text.hpp"
+#include "turnfit/opal/opal_io.hpp"
+
+namespace turnfit {
+namespace {
+
+namespace fs = std::filesystem;
+
+// The folder a file is written to or read from ("" for stdin/stdout: the current folder).
+std::string folder_of(const std::string& path) {
+  if (path.empty() || path == "-") return {};
+  return fs::path(path).parent_path().string();
+}
+
+// The machine as people read it: sections in turnfit-machine(5)'s order, each element's name
+// and type first (nlohmann's objects sort their keys).
+nlohmann::ordered_json in_reading_order(const nlohmann::json& m) {
+  auto element = [](const nlohmann::json& e) {
+    nlohmann::ordered_json o = nlohmann::ordered_json::object();
+    if (!e.is_object()) return nlohmann::ordered_json(e);
+    for (const char* k : {"name", "type"})
+      if (e.contains(k)) o[k] = e[k];
+    for (const auto& it : e.items())
+      if (!o.contains(it.key())) o[it.key()] = it.value();
+    return o;
+  };
+  nlohmann::ordered_json out = nlohmann::ordered_json::object();
+  for (const char* k : {"format", "name", "description", "particle", "field", "rf", "cavities", "trimcoils", "probes",
+                        "injection", "bunch", "tracking", "effects", "dvars"}) {
+    if (!m.contains(k)) continue;
+    if (m[k].is_array() && std::string(k) != "effects") {
+      nlohmann::ordered_json a = nlohmann::ordered_json::array();
+      for (const auto& e : m[k]) a.push_back(element(e));
+      out[k] = a;
+    } else {
+      out[k] = m[k];
+    }
+  }
+  for (const auto& it : m.items())
+    if (!out.contains(it.key())) out[it.key()] = it.value();
+  return out;
+}
+
+}  // namespace
+
+void add_import_opal_options(CLI::App& app, ImportOpalOptions& o) {
+  app.description(
+      "Reads an OPAL-cycl input (CYCLOTRON, RFCAVITY, TRIMCOIL, PROBE, BEAM, LINE, TRACK/RUN, variables\n"
+      "and IF blocks) and writes the turnfit machine it describes. Every line read but not used is\n"
+      "listed on stderr with the reason; lines it does not understand are marked 'not understood'.");
+  app.add_option("input", o.input, "OPAL input file ('-' for stdin)")->required();
+  app.add_flag("--strict", o.strict, "Anything not understood is an error (exit 65), not a warning");
+  app.add_option("--opal-version", o.opal_version,
+                 "OPAL version the input is read as: OPALVERSION in IF conditions and the trim coils' azimuth "
+                 "window (default 2022.1)");
+  cli::add_common_options(app, o.common, cli::kOutput);
+}
+
+int run_import_opal(const ImportOpalOptions& o) {
+  const double version = opal::parse_opal_version(o.opal_version);
+  const InputText in = read_input(o.input);
+  OpalImport r = import_opal(in.text, in.name, folder_of(o.input), folder_of(o.common.output), version);
+  const opal::Note* first_unexplained = nullptr;
+  size_t unexplained = 0;
+  for (const auto& n : r.notes) {
+    if (!n.explained) {
+      ++unexplained;
+      if (!first_unexplained) first_unexplained = &n;
+    }
+    if (!o.common.quiet || (!n.explained && !o.strict))
+      std::cerr << "turnfit-import-opal: " << clip_message(in.name + ":" + std::to_string(n.line) + ": " +
+                                                           (n.explained ? "note: " : "warning: ") + n.text)
+                << "\n";
+  }
+  if (o.strict && first_unexplained)
+    throw data_error(in.name, first_unexplained->line,
+                     first_unexplained->text + " (--strict; " + std::to_string(unexplained) + " line" +
+                         (unexplained == 1 ? "" : "s") + " not understood in all)");
+  // What was written must load as a machine.
+  const std::string out_name = o.common.output == "-" ? std::string("<stdout>") : o.common.output;
+  try {
+    machine_from_json(r.machine, in.name + " (imported machine)", folder_of(o.common.output));
+  } catch (const Error& e) {
+    throw Error(ExitCode::data, e.what());
+  }
+  write_output(o.common.output, json_text(in_reading_order(r.machine), 1) + "\n");
+  return 0;
+}
+
+void add_export_opal_options(CLI::App& app, ExportOpalCliOptions& o) {
+  app.description(
+      "Writes a turnfit machine as an OPAL-cycl input: field map, cavities, trim coils, probes,\n"
+      "injection and the tracking block, for OPAL 2022.1. A fit applies with --set or --dvars first.\n"
+      "What OPAL cannot express travels in comment lines that turnfit-import-opal reads back.");
+  app.add_option("machine", o.machine, "Machine file ('-' for stdin)")->required();
+  app.add_option("--set", o.sets, "Set a design variable or JSON pointer first: NAME=VALUE (repeatable)")
+      ->allow_extra_args(false);
+  app.add_option("--dvars", o.dvars, "JSON file of design-variable values to apply first (e.g. a fit's best.json)");
+  app.add_option("--map-out", o.files.map_out,
+                 "Also write the main field in OPAL's RING format to this file and use it (needed for turnfit-format maps)");
+  app.add_option("--dist-out", o.files.dist_out,
+                 "Also write OPAL's one-particle FROMFILE distribution to this file (default: the input names "
+                 "'dist1.dat' beside it, which you provide)");
+  cli::add_common_options(app, o.common, cli::kOutput);
+}
+
+int run_export_opal(const ExportOpalCliOptions& o) {
+  if ((o.machine == "-") + (o.dvars == "-") > 1) throw usage_error("only one input can be stdin (machine, --dvars)");
+  for (const std::string* f : {&o.files.map_out, &o.files.dist_out})
+    if (*f == "-") throw usage_error("--map-out and --dist-out need a file name ('-' is the input's output)");
+  Machine m = load_machine(o.machine);
+  if (!o.sets.empty()) apply_sets(m, o.sets);
+  if (!o.dvars.empty()) apply_dvars_file(m, o.dvars);
+  const std::string out_dir = folder_of(o.common.output);
+  auto rel = [&](const std::string& p) {
+    const fs::path abs = fs::absolute(p).lexically_normal();
+    const fs::path rel = abs.lexically_relative(fs::absolute(out_dir.empty() ? "." : out_dir).lexically_normal());
+    return rel.empty() ? abs.string() : rel.string();
+  };
+  const std::string map_file = o.files.map_out.empty() ? std::string() : rel(o.files.map_out);
+  const std::string dist_file = o.files.dist_out.empty() ? std::string("dist1.dat") : rel(o.files.dist_out);
+  std::vector<std::string> warnings;
+  if (o.files.dist_out.empty())
+    warnings.push_back("the input reads its particle from 'dist1.dat' beside it: two lines, '1' and "
+                       "'0 0 0 0 0 0' (or use --dist-out)");
+  const std::string text = export_opal(m, out_dir, map_file, dist_file, warnings);
+  // The files the input names, then the input.
+  if (!o.files.map_out.empty()) {
+    PolarFieldMap map = read_field_map(m.field.map, parse_map_format(m.field.format), m.field.symmetry);
+    std::ostringstream ms;
+    write_psi_ring(ms, map);
+    write_output(o.files.map_out, ms.str());
+  }
+  if (!o.files.dist_out.empty()) write_output(o.files.dist_out, "1\n0.0 0.0 0.0 0.0 0.0 0.0\n");
+  write_output(o.common.output, text);
+  for (const auto& w : warnings) cli::warn(o.common, "note: " + w);
+  return 0;
+}
+
+}  // namespace turnfit

@@ -1,0 +1,786 @@
+// turnfit-import-opal's reading of OPAL-cycl commands into a turnfit machine document.
+#include <algorithm>
+#include <cfloat>
+#include <cmath>
+#include <cstdio>
+#include <filesystem>
+#include <map>
+#include <set>
+
+#include "turnfit/io/error.hpp"
+#include "turnfit/io/json.hpp"
+#include "turnfit/io/limits.hpp"
+#include "turnfit/io/text.hpp"
+#include "turnfit/opal/opal_io.hpp"
+#include "turnfit/opal/annotation.hpp"
+
+namespace turnfit {
+namespace {
+
+using nlohmann::json;
+using opal::Attribute;
+using opal::Command;
+using opal::Input;
+using opal::Note;
+using opal::upper;
+
+namespace fs = std::filesystem;
+
+constexpr double kPhiWindowSince = 20220000;  // PHIMIN/PHIMAX: absent in 2.0, read as 0/0 in 2022.1
+
+// A value from a unit conversion, rounded to 12 significant digits when that is within a few
+// ulps (72.00000000000001 MeV from a GeV momentum reads 72), otherwise as computed.
+double tidy(double v) {
+  char buf[40];
+  std::snprintf(buf, sizeof buf, "%.12g", v);
+  double w = std::strtod(buf, nullptr);
+  return std::fabs(w - v) <= 8 * DBL_EPSILON * std::fabs(v) ? w : v;
+}
+
+std::string num(double v) { return format_exact(tidy(v)); }
+
+// Reads one command's attributes: every attribute must be taken, explained, or is reported.
+class Attrs {
+ public:
+  Attrs(const Command& c, const Input& in, std::vector<Note>& notes) : c_(c), in_(in), notes_(notes) {}
+  ~Attrs() = default;
+
+  const Attribute* take(const std::string& n) {
+    const Attribute* a = c_.find(n);
+    if (a) used_.insert(n);
+    return a;
+  }
+  bool has(const std::string& n) const { return c_.find(n) != nullptr; }
+  std::optional<double> number(const std::string& n) {
+    const Attribute* a = take(n);
+    if (!a) return std::nullopt;
+    return in_.number(*a);
+  }
+  double number(const std::string& n, double def) {
+    auto v = number(n);
+    return v ? *v : def;
+  }
+  double required(const std::string& n) {
+    auto v = number(n);
+    if (!v) throw data_error(in_.name(), c_.line, what() + ": missing " + n);
+    return *v;
+  }
+  std::optional<std::string> string(const std::string& n) {
+    const Attribute* a = take(n);
+    if (!a) return std::nullopt;
+    return in_.string(*a);
+  }
+  /// An attribute read and not used, with the reason.
+  void explain(const std::string& n, const std::string& why) {
+    const Attribute* a = take(n);
+    if (a) notes_.push_back({a->line, what() + " " + a->spelled + ": " + why, true});
+  }
+  /// Whatever was not taken: not understood.
+  void finish() {
+    for (const auto& a : c_.attrs)
+      if (!used_.count(a.name))
+        notes_.push_back({a.line, what() + ": attribute " + quote(a.spelled) + " is not understood", false});
+  }
+  std::string what() const { return (c_.label.empty() ? std::string() : c_.label + ": ") + c_.keyword; }
+  Error error(const Attribute& a, const std::string& msg) const {
+    return data_error(in_.name(), a.line, what() + " " + a.spelled + ": " + msg);
+  }
+
+ private:
+  const Command& c_;
+  const Input& in_;
+  std::vector<Note>& notes_;
+  std::set<std::string> used_;
+};
+
+// The value tokens of an attribute as written, for messages.
+std::string written(const Attribute& a) {
+  std::string s;
+  for (const auto& t : a.value) s += (s.empty() ? "" : " ") + (t.kind == opal::Token::Kind::string ? "\"" + t.text + "\"" : t.text);
+  return s;
+}
+
+struct Importer {
+  const Input& in;
+  std::string in_dir;
+  double version;
+  bool check_files = true;
+  std::vector<Note> notes;
+  std::vector<std::string> remarks;  // choices stated in the machine's description
+
+  Error error(long line, const std::string& msg) const { return data_error(in.name(), line, msg); }
+  void note(long line, const std::string& text, bool explained = true) { notes.push_back({line, text, explained}); }
+
+  // An input file name as OPAL would open it (relative to the folder OPAL runs in: the input's).
+  std::string existing_file(Attrs& r, const Attribute& a, const std::string& what) const {
+    const std::string f = in.string(a);
+    if (f.empty()) throw r.error(a, "empty file name");
+    fs::path p = fs::path(f).is_absolute() ? fs::path(f) : fs::path(in_dir.empty() ? "." : in_dir) / f;
+    p = fs::absolute(p).lexically_normal();
+    std::error_code ec;
+    if (check_files && !fs::is_regular_file(p, ec))
+      throw r.error(a, what + " " + quote(f) + " is not there (looked for " + quote(p.string()) + ")");
+    return p.string();
+  }
+
+  json run() {
+    const auto& cmds = in.commands();
+    std::map<std::string, const Command*> by_label;
+    std::vector<const Command*> tracks, runs, selects, lines;
+    std::string title;
+    bool stopped = false;
+    for (const Command& c : cmds) {
+      if (stopped) {
+        note(c.line, c.keyword_spelled + " after STOP: OPAL does not read it");
+        continue;
+      }
+      if (!c.label.empty()) {
+        const std::string key = upper(c.label);
+        auto it = by_label.find(key);
+        if (it != by_label.end())
+          note(c.line, "label " + c.label + " defined again (first on line " + std::to_string(it->second->line) +
+                           "): the last definition counts");
+        by_label[key] = &c;
+      }
+      const std::string& k = c.keyword;
+      if (k == "OPTION") {
+        for (const auto& a : c.attrs) {
+          if (a.name == "VERSION")
+            note(a.line, "OPTION VERSION = " + written(a) + ": the OPAL version the input was written for; IF blocks "
+                         "are read for OPALVERSION " + num(version) + " (--opal-version)");
+          else
+            note(a.line, "OPTION " + a.spelled + ": an OPAL run option (output, echo, dumps): nothing to import");
+        }
+      } else if (k == "TITLE") {
+        Attrs r(c, in, notes);
+        if (auto s = r.string("STRING")) title = *s;
+        r.finish();
+      } else if (k == "VALUE") {
+        for (const auto& a : c.attrs) {
+          std::string vals;
+          for (double v : in.numbers(a)) vals += (vals.empty() ? "" : ", ") + num(v);
+          note(a.line, "VALUE " + written(a) + " = " + vals + " (printed by OPAL; nothing to import)");
+        }
+      } else if (k == "SELECT") {
+        selects.push_back(&c);
+      } else if (k == "TRACK") {
+        tracks.push_back(&c);
+      } else if (k == "RUN") {
+        runs.push_back(&c);
+      } else if (k == "LINE") {
+        lines.push_back(&c);
+      } else if (k == "ENDTRACK") {
+        note(c.line, "ENDTRACK: closes the TRACK block");
+      } else if (k == "STOP" || k == "QUIT") {
+        note(c.line, c.keyword_spelled + ": the end of OPAL's input");
+        stopped = true;
+      } else if (k == "ECHO") {
+        note(c.line, "ECHO: OPAL prints its text; nothing to import");
+      } else if (k == "CYCLOTRON" || k == "RFCAVITY" || k == "TRIMCOIL" || k == "PROBE" || k == "BEAM" ||
+                 k == "DISTRIBUTION" || k == "FIELDSOLVER") {
+        if (c.label.empty()) note(c.line, c.keyword_spelled + " without a label is not understood", false);
+      } else if (by_label.count(k)) {
+        note(c.line, "'" + c.keyword_spelled + "' is a copy of element " + c.keyword_spelled + ": copies are not understood",
+             false);
+      } else {
+        note(c.line, "unknown command or element type '" + c.keyword_spelled + "'", false);
+      }
+    }
+
+    // The line that is tracked: TRACK's, else SELECT's, else the only one.
+    const Command* track = tracks.empty() ? nullptr : tracks.back();
+    if (tracks.size() > 1) note(tracks.front()->line, "more than one TRACK: the last one is imported", false);
+    if (runs.size() > 1) note(runs.front()->line, "more than one RUN: the last one is imported", false);
+    std::string line_name;
+    long line_at = 0;
+    if (track && track->find("LINE")) {
+      line_name = in.string(*track->find("LINE"));
+      line_at = track->find("LINE")->line;
+    } else if (!selects.empty() && selects.back()->find("LINE")) {
+      line_name = in.string(*selects.back()->find("LINE"));
+      line_at = selects.back()->line;
+    } else if (lines.size() == 1) {
+      line_name = lines.front()->label;
+      line_at = lines.front()->line;
+    } else {
+      throw error(lines.empty() ? 0 : lines.back()->line,
+                  lines.empty() ? "no LINE: nothing says which elements form the machine"
+                                : "several LINEs and no TRACK or SELECT names one");
+    }
+    for (const Command* s : selects) {
+      Attrs r(*s, in, notes);
+      r.explain("LINE", "the line OPAL's commands act on");
+      r.finish();
+    }
+    auto lit = by_label.find(upper(line_name));
+    if (lit == by_label.end() || lit->second->keyword != "LINE")
+      throw error(line_at, "LINE " + quote(line_name) + " is not defined");
+    const Command& line = *lit->second;
+    std::vector<const Command*> members;
+    std::set<const Command*> in_line;
+    for (const auto& t : line.line_members) {
+      auto m = by_label.find(upper(t.text));
+      if (m == by_label.end()) throw error(t.line, "LINE member " + quote(t.text) + " is not defined");
+      if (m->second->keyword == "LINE") throw error(t.line, "LINE member " + quote(t.text) + " is a LINE: nested lines are not read");
+      members.push_back(m->second);
+      in_line.insert(m->second);
+    }
+    for (const auto* l : lines)
+      if (l != &line) note(l->line, "LINE " + l->label + " is not the tracked line (" + line.label + "): not imported");
+
+    json m = json::object();
+    m["format"] = "turnfit-machine/1";
+    std::string stem = in.name() == "<stdin>" ? std::string("opal") : fs::path(in.name()).stem().string();
+    m["name"] = stem.empty() ? std::string("opal") : stem;
+    m["description"] = "";
+
+    // The cyclotron: main field, RF, injection point, trim coil list.
+    const Command* cyc = nullptr;
+    for (const Command* c : members)
+      if (c->keyword == "CYCLOTRON") {
+        if (cyc) throw error(c->line, "a second CYCLOTRON in LINE " + line.label + " (the first is " + cyc->label + ")");
+        cyc = c;
+      }
+    if (!cyc) throw error(line.line, "LINE " + line.label + " has no CYCLOTRON");
+    json trims = json::array();
+    json injection = json::object();
+    double rf_MHz = 0;
+    {
+      Attrs r(*cyc, in, notes);
+      const Attribute* type = r.take("TYPE");
+      if (!type) throw error(cyc->line, r.what() + ": missing TYPE (turnfit reads TYPE=\"RING\" maps)");
+      const std::string t = upper(in.string(*type));
+      if (t != "RING")
+        throw r.error(*type, "field map type " + quote(in.string(*type)) +
+                                 " is not read by turnfit (it reads TYPE=\"RING\", the PSI format)");
+      const Attribute* fm = r.take("FMAPFN");
+      if (!fm) throw error(cyc->line, r.what() + ": missing FMAPFN");
+      json field = json::object();
+      field["map"] = existing_file(r, *fm, "field map");
+      field["format"] = "psi-ring";
+      if (auto s = r.number("SYMMETRY")) {
+        if (*s != std::floor(*s) || *s < 1 || *s > 360) throw r.error(*r.take("SYMMETRY"), "must be a whole number in 1..360, got " + num(*s));
+        field["symmetry"] = static_cast<int>(*s);
+      }
+      if (auto s = r.number("BSCALE")) field["scale"] = *s;
+      if (auto s = r.number("TRIMCOILTHRESHOLD")) field["trimcoil_threshold_T"] = *s;
+      m["particle"] = json::object();
+      m["field"] = field;
+      json rf = json::object();
+      if (auto h = r.number("CYHARMON")) {
+        if (*h != std::floor(*h) || *h < 1) throw r.error(*r.take("CYHARMON"), "must be a whole number >= 1, got " + num(*h));
+        rf["harmonic"] = static_cast<int>(*h);
+      }
+      if (const Attribute* a = r.take("RFFREQ")) {
+        auto f = in.numbers(*a);
+        if (f.empty()) throw r.error(*a, "needs a frequency");
+        if (f.size() > 1) note(a->line, r.what() + " RFFREQ: only the first frequency is the machine's RF (" + num(f[0]) + " MHz)", false);
+        if (!(f[0] >= 0)) throw r.error(*a, "must be >= 0, got " + num(f[0]));
+        rf_MHz = f[0];
+        rf["frequency_MHz"] = f[0];
+      }
+      m["rf"] = rf;
+      injection["r_mm"] = r.required("RINIT");
+      injection["pr_betagamma"] = r.number("PRINIT", 0.0);
+      injection["phi_deg"] = r.required("PHIINIT");
+      if (auto z = r.number("ZINIT")) injection["z_mm"] = *z;
+      if (auto z = r.number("PZINIT")) injection["pz_betagamma"] = *z;
+      if (const Attribute* a = r.take("TRIMCOIL")) {
+        for (const std::string& n : in.names(*a)) {
+          auto t = by_label.find(upper(n));
+          if (t == by_label.end() || t->second->keyword != "TRIMCOIL")
+            throw r.error(*a, quote(n) + " is not a TRIMCOIL defined in the input");
+          trimcoil(*t->second, trims);
+        }
+      }
+      r.explain("FMLOWE", "energy range of OPAL's closed-orbit finder (GAUSSMATCHED): turnfit-orbit --energies does this");
+      r.explain("FMHIGHE", "energy range of OPAL's closed-orbit finder (GAUSSMATCHED): turnfit-orbit --energies does this");
+      for (const char* k : {"MINZ", "MAXZ", "MINR", "MAXR"})
+        r.explain(k, "OPAL's loss limits: turnfit loses a particle at the map's edge");
+      if (const Attribute* a = r.take("SPIRAL")) {
+        if (in.boolean(*a)) note(a->line, r.what() + " SPIRAL = TRUE (a spiral inflector) is not understood", false);
+        else note(a->line, r.what() + " SPIRAL = FALSE: no spiral inflector");
+      }
+      r.finish();
+    }
+    // Trim coils named nowhere are defined but unused.
+    for (const Command& c : cmds)
+      if (c.keyword == "TRIMCOIL" && !c.label.empty()) {
+        bool used = false;
+        for (const auto& t : trims) used = used || t["name"] == c.label;
+        if (!used && by_label[upper(c.label)] == &c && !cyc->find("TRIMCOIL"))
+          note(c.line, "TRIMCOIL " + c.label + " is in no CYCLOTRON's TRIMCOIL list: not imported");
+      }
+
+    // Beam: particle and energy.
+    const Command* beam = named(track, "BEAM", "BEAM", by_label);
+    if (!beam && !runs.empty()) beam = named(runs.back(), "BEAM", "BEAM", by_label);
+    if (!beam) beam = only(cmds, "BEAM");
+    if (!beam) throw error(track ? track->line : line.line, "no BEAM: the particle and its energy are unknown");
+    double mass_MeV = 0;
+    {
+      Attrs r(*beam, in, notes);
+      json particle = json::object();
+      if (auto p = r.string("PARTICLE")) {
+        const std::string up = upper(*p);
+        static const std::map<std::string, std::string> species = {
+            {"PROTON", "proton"}, {"DEUTERON", "deuteron"}, {"ALPHA", "alpha"}, {"H2P", "h2+"}};
+        auto s = species.find(up);
+        if (s == species.end())
+          throw r.error(*beam->find("PARTICLE"), "particle " + quote(*p) + " is not one turnfit tracks (PROTON, DEUTERON, ALPHA, H2P; "
+                                                 "or MASS and CHARGE without PARTICLE)");
+        particle["species"] = s->second;
+        mass_MeV = named_particle(s->second)->mass_MeV;
+        if (const Attribute* a = r.take("CHARGE")) {
+          const double q = in.number(*a);
+          if (q != named_particle(s->second)->charge_e)
+            note(a->line, "BEAM CHARGE = " + num(q) + ": PARTICLE sets the charge in OPAL; " + *p + "'s is used", false);
+          else
+            note(a->line, "BEAM CHARGE = " + num(q) + ": the particle's charge, as PARTICLE gives it");
+        }
+        r.explain("MASS", "PARTICLE sets the mass in OPAL");
+      } else {
+        const double mass = r.required("MASS"), q = r.required("CHARGE");
+        if (!(mass > 0)) throw error(beam->line, "BEAM MASS must be > 0, got " + num(mass));
+        particle["species"] = "custom";
+        particle["mass_MeV"] = tidy(mass * 1000);
+        particle["charge_e"] = q;
+        mass_MeV = mass * 1000;
+      }
+      m["particle"] = particle;
+      double E = 0;
+      if (auto g = r.number("GAMMA")) {
+        if (!(*g > 1)) throw r.error(*beam->find("GAMMA"), "must be > 1, got " + num(*g));
+        E = (*g - 1) * mass_MeV;
+        r.explain("ENERGY", "GAMMA takes precedence in OPAL");
+        r.explain("PC", "GAMMA takes precedence in OPAL");
+      } else if (auto e = r.number("ENERGY")) {
+        E = *e * 1000 - mass_MeV;
+        if (!(E > 0)) throw r.error(*beam->find("ENERGY"), "the total energy " + num(*e) + " GeV is not above the rest energy");
+        r.explain("PC", "ENERGY takes precedence in OPAL");
+      } else if (auto pc = r.number("PC")) {
+        if (!(*pc > 0)) throw r.error(*beam->find("PC"), "must be > 0, got " + num(*pc));
+        const double p = *pc * 1000;
+        E = std::sqrt(p * p + mass_MeV * mass_MeV) - mass_MeV;
+      } else {
+        throw error(beam->line, "BEAM gives no energy (GAMMA, ENERGY or PC)");
+      }
+      injection["energy_MeV"] = tidy(E);
+      if (auto f = r.number("BFREQ")) {
+        if (rf_MHz > 0 && *f != rf_MHz)
+          note(beam->find("BFREQ")->line, "BEAM BFREQ = " + num(*f) + " MHz differs from the RF (" + num(rf_MHz) +
+                                              " MHz): OPAL's time step uses BFREQ, turnfit's rk4 the RF frequency", false);
+        else
+          note(beam->find("BFREQ")->line, "BEAM BFREQ: sets OPAL's time step with STEPSPERTURN (the RF frequency here)");
+      }
+      r.explain("NPART", "OPAL's particle count: turnfit-track --particles");
+      r.explain("BCURRENT", "beam current: no space charge in turnfit yet");
+      r.finish();
+    }
+    m["rf"] = m["rf"];
+
+    // Elements of the line in order.
+    json cavities = json::array(), probes = json::array();
+    for (const Command* c : members) {
+      if (c->keyword == "RFCAVITY") cavity(*c, rf_MHz, cavities);
+      else if (c->keyword == "PROBE") probe(*c, probes);
+      else if (c->keyword != "CYCLOTRON")
+        note(c->line, c->keyword_spelled + " " + c->label + " in LINE " + line.label + " is not understood", false);
+    }
+    for (const Command& c : cmds)
+      if ((c.keyword == "RFCAVITY" || c.keyword == "PROBE" || c.keyword == "CYCLOTRON") && !c.label.empty() &&
+          !in_line.count(&c))
+        note(c.line, c.keyword_spelled + " " + c.label + " is not in the tracked LINE " + line.label + ": not imported");
+    if (!cavities.empty()) m["cavities"] = cavities;
+    if (!trims.empty()) m["trimcoils"] = trims;
+    if (!probes.empty()) m["probes"] = probes;
+    m["injection"] = injection;
+
+    // Tracking, run, distribution, field solver.
+    json tracking = json::object();
+    if (track) {
+      Attrs r(*track, in, notes);
+      r.take("LINE");
+      r.take("BEAM");
+      const double spt = r.number("STEPSPERTURN", 720);
+      if (spt != std::floor(spt) || spt < 16 || spt > 1e7)
+        throw r.error(*track->find("STEPSPERTURN"), "must be a whole number in 16..1e7, got " + num(spt));
+      tracking["steps_per_turn"] = static_cast<int>(spt);
+      double maxsteps = 10;
+      if (const Attribute* a = r.take("MAXSTEPS")) {
+        auto v = in.numbers(*a);
+        if (v.empty()) throw r.error(*a, "needs a number");
+        if (v.size() > 1) note(a->line, "TRACK MAXSTEPS: only the first value is read", false);
+        maxsteps = v[0];
+      }
+      if (!(maxsteps >= 0)) throw error(track->line, "TRACK MAXSTEPS must be >= 0, got " + num(maxsteps));
+      const double turns = std::floor(maxsteps / spt);
+      if (turns >= 1) tracking["turns"] = static_cast<int>(std::min(turns, 1e6));
+      if (turns * spt != maxsteps)
+        note(track->line, "TRACK MAXSTEPS = " + num(maxsteps) + " is not a whole number of turns of " + num(spt) +
+                              " steps: " + num(turns) + " whole turns are imported");
+      if (const Attribute* a = r.take("TIMEINTEGRATOR")) {
+        const std::string ti = upper(in.string(*a));
+        if (ti == "RK4" || ti == "RK-4")
+          note(a->line, "TRACK TIMEINTEGRATOR = RK4: turnfit's rk4 integrator (--integrator rk4; --opal-compat for OPAL's numerics)");
+        else
+          note(a->line, "TRACK TIMEINTEGRATOR = " + in.string(*a) + " is not one turnfit has (it has RK4)", false);
+      }
+      r.explain("DT", "OPAL-cycl sets its time step from STEPSPERTURN");
+      r.explain("ZSTOP", "not used by OPAL-cycl");
+      r.finish();
+    }
+    if (!tracking.empty()) m["tracking"] = tracking;
+    if (!runs.empty()) {
+      const Command& run = *runs.back();
+      Attrs r(run, in, notes);
+      if (auto meth = r.string("METHOD")) {
+        if (upper(*meth) != "CYCLOTRON-T")
+          note(run.find("METHOD")->line, "RUN METHOD = " + *meth + " is not OPAL's cyclotron tracker (CYCLOTRON-T)", false);
+      }
+      r.take("BEAM");
+      if (const Attribute* a = r.take("FIELDSOLVER")) {
+        auto fsn = in.names(*a);
+        for (const auto& n : fsn) {
+          auto f = by_label.find(upper(n));
+          if (f == by_label.end() || f->second->keyword != "FIELDSOLVER")
+            throw r.error(*a, quote(n) + " is not a FIELDSOLVER defined in the input");
+          fieldsolver(*f->second);
+        }
+      }
+      if (const Attribute* a = r.take("DISTRIBUTION")) {
+        for (const auto& n : in.names(*a)) {
+          auto d = by_label.find(upper(n));
+          if (d == by_label.end() || d->second->keyword != "DISTRIBUTION")
+            throw r.error(*a, quote(n) + " is not a DISTRIBUTION defined in the input");
+          distribution(*d->second);
+        }
+      }
+      if (const Attribute* a = r.take("TURNS")) {
+        const double t = in.number(*a);
+        if (t == 1) note(a->line, "RUN TURNS = 1: one bunch (OPAL's multi-bunch count)");
+        else note(a->line, "RUN TURNS = " + num(t) + ": OPAL's neighbouring bunches are not modelled", false);
+      }
+      r.finish();
+    }
+
+    // The description: where the machine came from and every choice made for it.
+    std::string d = "Imported by turnfit-import-opal from " + fs::path(in.name()).filename().string();
+    if (!title.empty()) d += " (TITLE \"" + title + "\")";
+    d += ", read as OPAL " + version_text() + " (OPALVERSION " + num(version) + "). Physics: turnfit's defaults "
+         "(turnfit-track --opal-compat gives OPAL-cycl 2022.1's numerics); tracking.steps_per_turn is OPAL's "
+         "STEPSPERTURN, used by the rk4 integrator.";
+    for (const auto& s : remarks) d += " " + s;
+    m["description"] = d;
+    return m;
+  }
+
+  std::string version_text() const {
+    const long v = static_cast<long>(version);
+    return std::to_string(v / 10000) + "." + std::to_string(v / 100 % 100) + "." + std::to_string(v % 100);
+  }
+
+  const Command* named(const Command* c, const std::string& attr, const std::string& keyword,
+                       const std::map<std::string, const Command*>& by_label) const {
+    if (!c) return nullptr;
+    const Attribute* a = c->find(attr);
+    if (!a) return nullptr;
+    const std::string n = in.string(*a);
+    auto it = by_label.find(upper(n));
+    if (it == by_label.end() || it->second->keyword != keyword)
+      throw error(a->line, c->keyword + " " + attr + ": " + quote(n) + " is not a " + keyword + " defined in the input");
+    return it->second;
+  }
+
+  static const Command* only(const std::vector<Command>& cmds, const std::string& keyword) {
+    const Command* found = nullptr;
+    for (const auto& c : cmds)
+      if (c.keyword == keyword) {
+        if (found) return nullptr;
+        found = &c;
+      }
+    return found;
+  }
+
+  void trimcoil(const Command& c, json& out) {
+    Attrs r(c, in, notes);
+    json t = json::object();
+    t["name"] = c.label;
+    const Attribute* type = r.take("TYPE");
+    if (!type) throw error(c.line, r.what() + ": missing TYPE");
+    const std::string ty = upper(in.string(*type));
+    std::string tt;
+    if (ty == "PSI-BFIELD") tt = "psi-bfield";
+    else if (ty == "PSI-PHASE") tt = "psi-phase";
+    else if (ty == "PSI-BFIELD-MIRRORED") tt = "psi-bfield-mirrored";
+    else {
+      note(type->line, r.what() + " TYPE = " + in.string(*type) + " is not a trim coil type OPAL " + version_text() +
+                           " or turnfit has (PSI-BFIELD, PSI-PHASE, PSI-BFIELD-MIRRORED): coil left out", false);
+      for (const auto& a : c.attrs) r.take(a.name);
+      return;
+    }
+    t["type"] = tt;
+    t["rmin_mm"] = r.number("RMIN", 0.0);
+    t["rmax_mm"] = r.required("RMAX");
+    const double bmax = r.number("BMAX", 0.0);
+    // OPAL adds PSI-BFIELD and PSI-PHASE fields to its sign-flipped Bz and subtracts the
+    // mirrored shape (physics.md): BMAX is -bmax_T for the first two, +bmax_T for the third.
+    t["bmax_T"] = tt == "psi-bfield-mirrored" ? bmax : -bmax;
+    if (tt == "psi-bfield-mirrored") {
+      t["slope_per_mm"] = r.required("SLPTC");
+      for (const char* k : {"COEFNUM", "COEFDENOM", "COEFNUMPHI", "COEFDENOMPHI"})
+        r.explain(k, "not used by PSI-BFIELD-MIRRORED");
+    } else {
+      std::vector<double> num_c{1.0}, den_c;
+      if (const Attribute* a = r.take("COEFNUM")) num_c = in.numbers(*a);
+      if (const Attribute* a = r.take("COEFDENOM")) den_c = in.numbers(*a);
+      if (num_c.empty()) num_c = {1.0};
+      t["coefnum"] = num_c;
+      if (!den_c.empty()) t["coefdenom"] = den_c;
+      r.explain("SLPTC", "used only by PSI-BFIELD-MIRRORED");
+      // An azimuthal factor turnfit can hold only when it is a constant.
+      double phi_factor = 1;
+      for (const char* k : {"COEFNUMPHI", "COEFDENOMPHI"}) {
+        const Attribute* a = r.take(k);
+        if (!a) continue;
+        auto v = in.numbers(*a);
+        if (v.size() > 1)
+          for (size_t i = 1; i < v.size(); ++i)
+            if (v[i] != 0)
+              throw r.error(*a, "an azimuthal profile (" + written(*a) +
+                                    ") is not modelled by turnfit: only a constant factor can be imported");
+        const double f = v.empty() ? 1.0 : v[0];
+        if (std::string(k) == "COEFDENOMPHI" && f == 0) throw r.error(*a, "division by zero: the constant denominator is 0");
+        phi_factor = std::string(k) == "COEFNUMPHI" ? phi_factor * f : phi_factor / f;
+      }
+      if (phi_factor != 1) {
+        t["bmax_T"] = t["bmax_T"].get<double>() * phi_factor;
+        remarks.push_back("Trim coil " + c.label + ": its constant azimuthal factor " + num(phi_factor) +
+                          " (COEFNUMPHI/COEFDENOMPHI) is folded into bmax_T.");
+      }
+    }
+    const Attribute* pmin = c.find("PHIMIN");
+    const Attribute* pmax = c.find("PHIMAX");
+    if (version < kPhiWindowSince) {
+      if (pmin || pmax)
+        note((pmin ? pmin : pmax)->line, r.what() + ": PHIMIN/PHIMAX do not exist before OPAL 2022 (--opal-version " +
+                                             version_text() + ")", false);
+      r.take("PHIMIN");
+      r.take("PHIMAX");
+    } else {
+      // 2022.1 reads an unset PHIMIN/PHIMAX as 0 and applies a coil only where
+      // PHIMIN <= phi <= PHIMAX, phi in [0, 360) deg: unset, it acts at azimuth 0 alone.
+      const double a = r.number("PHIMIN", 0.0), b = r.number("PHIMAX", 0.0);
+      if (a == b) {
+        const double given = t["bmax_T"].get<double>();
+        t["bmax_T"] = 0.0;
+        remarks.push_back("Trim coil " + c.label + ": OPAL " + version_text() + " applies it only where the azimuth is " +
+                          (a == 0 && !pmin && !pmax ? std::string("0 exactly (PHIMIN and PHIMAX unset read as 0)")
+                                                    : "exactly PHIMIN = PHIMAX = " + num(a) + " deg") +
+                          ", so it acts nowhere: imported with bmax_T 0 (the input's field is " + num(given) +
+                          " T in turnfit's sign; give PHIMIN = 0, PHIMAX = 360 for the full circle).");
+        note(c.line, r.what() + ": acts nowhere in OPAL " + version_text() + " (PHIMIN = PHIMAX = " + num(a) +
+                         "): imported with bmax_T 0, as the description says");
+      } else {
+        double lo = a, hi = b;
+        if (lo < 0 || hi > 360 || lo > 360 || hi < 0)
+          throw r.error(*(pmin ? pmin : pmax), "PHIMIN/PHIMAX must be in [0, 360] deg (OPAL 2022.1 does not wrap "
+                                               "azimuths), got " + num(a) + ", " + num(b));
+        if (lo > hi) hi += 360;  // OPAL's window through azimuth 0
+        t["phimin_deg"] = lo;
+        t["phimax_deg"] = std::min(hi, lo + 360);
+      }
+    }
+    r.finish();
+    out.push_back(t);
+  }
+
+  void cavity(const Command& c, double rf_MHz, json& out) {
+    Attrs r(c, in, notes);
+    const Attribute* type = r.take("TYPE");
+    const std::string ty = type ? upper(in.string(*type)) : std::string();
+    if (ty != "SINGLEGAP") {
+      note(type ? type->line : c.line, r.what() + ": TYPE " + (type ? quote(in.string(*type)) : std::string("(none)")) +
+                                           " is not understood (turnfit has SINGLEGAP cavities): cavity left out", false);
+      for (const auto& a : c.attrs) r.take(a.name);
+      return;
+    }
+    json k = json::object();
+    k["name"] = c.label;
+    k["voltage_MV"] = r.required("VOLT");
+    if (const Attribute* a = r.take("FMAPFN")) k["profile"] = existing_file(r, *a, "voltage profile");
+    else note(c.line, r.what() + ": no FMAPFN: a flat voltage profile");
+    const double f = r.required("FREQ");
+    if (!(rf_MHz > 0)) throw error(c.line, r.what() + ": a cavity needs the CYCLOTRON's RFFREQ");
+    double h = f / rf_MHz;
+    if (std::fabs(h - std::round(h)) <= 1e-12 * h) h = std::round(h);
+    if (!(h > 0)) throw r.error(*c.find("FREQ"), "must be > 0, got " + num(f));
+    if (h != 1) k["harmonic_factor"] = tidy(h);
+    k["phase_deg"] = r.number("PHI0", 0.0);
+    k["angle_deg"] = r.number("ANGLE", 0.0);
+    k["pdis_mm"] = r.number("PDIS", 0.0);
+    k["rmin_mm"] = r.number("RMIN", 0.0);
+    k["rmax_mm"] = r.required("RMAX");
+    k["gap_width_mm"] = r.number("GAPWIDTH", 0.0);
+    r.explain("FAST", "OPAL's interpolation shortcut for field maps: no effect on a single gap");
+    r.finish();
+    out.push_back(k);
+  }
+
+  void probe(const Command& c, json& out) {
+    Attrs r(c, in, notes);
+    const double x0 = r.required("XSTART"), x1 = r.required("XEND");
+    const double y0 = r.required("YSTART"), y1 = r.required("YEND");
+    const double dx = x1 - x0, dy = y1 - y0, len = std::hypot(dx, dy);
+    if (!(len > 0)) throw error(c.line, r.what() + ": XSTART, YSTART and XEND, YEND are the same point");
+    // turnfit's probe: s (cos phi, sin phi) + a (sin phi, -cos phi), s from s_min to s_max.
+    const double phi = std::atan2(dy, dx), cs = dx / len, sn = dy / len;
+    json p = json::object();
+    p["name"] = c.label;
+    double phi_deg = phi * 180 / M_PI;
+    if (phi_deg < 0) phi_deg += 360;
+    p["phi_deg"] = tidy(phi_deg);
+    p["a_mm"] = tidy(x0 * sn - y0 * cs);
+    p["s_min_mm"] = tidy(x0 * cs + y0 * sn);
+    p["s_max_mm"] = tidy(x1 * cs + y1 * sn);
+    p["step_mm"] = r.number("STEP", 1.0);
+    if (!(p["step_mm"].get<double>() > 0)) throw r.error(*c.find("STEP"), "must be > 0");
+    r.explain("WIDTH", "not used by OPAL");
+    r.explain("OUTFN", "OPAL's output file name");
+    r.finish();
+    out.push_back(p);
+  }
+
+  void fieldsolver(const Command& c) {
+    Attrs r(c, in, notes);
+    const std::string t = upper(r.string("FSTYPE").value_or("NONE"));
+    if (t == "NONE") note(c.line, "FIELDSOLVER " + c.label + ": FSTYPE = NONE, no space charge");
+    else note(c.line, "FIELDSOLVER " + c.label + ": space charge (FSTYPE = " + t + ") is not modelled by turnfit yet", false);
+    for (const auto& a : c.attrs) r.take(a.name);
+  }
+
+  void distribution(const Command& c) {
+    Attrs r(c, in, notes);
+    const Attribute* type = r.take("TYPE");
+    const std::string t = type ? upper(in.string(*type)) : std::string();
+    if (t == "FROMFILE") {
+      const Attribute* f = r.take("FNAME");
+      if (!f) throw error(c.line, r.what() + ": FROMFILE without FNAME");
+      fs::path p = fs::path(in.string(*f));
+      if (!p.is_absolute()) p = fs::path(in_dir.empty() ? "." : in_dir) / p;
+      std::error_code ec;
+      if (!check_files) {
+        for (const auto& a : c.attrs) r.take(a.name);
+        return;
+      }
+      if (!fs::is_regular_file(p, ec)) {
+        note(f->line, "DISTRIBUTION " + c.label + ": file " + quote(in.string(*f)) + " is not there: not read", false);
+        for (const auto& a : c.attrs) r.take(a.name);
+        return;
+      }
+      const InputText txt = read_input(p.string());
+      const auto rows = split_lines(txt.text, in.name() + ": " + in.string(*f));
+      std::vector<std::vector<double>> parts;
+      long count = -1;
+      for (size_t i = 0; i < rows.size(); ++i) {
+        std::string_view l = trim(rows[i]);
+        if (count < 0) {
+          if (auto h = l.find('#'); h != std::string_view::npos) l = trim(l.substr(0, h));
+          if (l.empty()) continue;
+          count = parse_long(l, txt.name, static_cast<long>(i + 1), "particle count");
+          if (count < 1) throw data_error(txt.name, static_cast<long>(i + 1), "particle count must be >= 1");
+          continue;
+        }
+        if (l.empty()) continue;
+        auto fields = split_blanks(l);
+        if (fields.size() != 6) throw data_error(txt.name, static_cast<long>(i + 1), "expected 6 numbers (x px y py z pz)");
+        std::vector<double> v;
+        for (auto x : fields) v.push_back(parse_double(x, txt.name, static_cast<long>(i + 1), "coordinate"));
+        parts.push_back(v);
+        if (parts.size() > 2) break;
+      }
+      bool at_reference = count == 1 && parts.size() == 1 &&
+                          std::all_of(parts[0].begin(), parts[0].end(), [](double x) { return x == 0; });
+      if (at_reference)
+        note(c.line, "DISTRIBUTION " + c.label + ": one particle at the reference, the machine's injection point");
+      else
+        note(c.line, "DISTRIBUTION " + c.label + ": FROMFILE with offsets is not converted (turnfit-track --bunch "
+                                                 "takes a CSV of offsets: turnfit-machine(5) BUNCH)", false);
+    } else if (t == "GAUSSMATCHED") {
+      note(c.line, "DISTRIBUTION " + c.label + ": GAUSSMATCHED, a bunch matched by OPAL's closed-orbit finder "
+                                               "(its tunes): turnfit-orbit computes closed orbits and tunes itself");
+    } else {
+      note(type ? type->line : c.line, "DISTRIBUTION " + c.label + ": TYPE " + (t.empty() ? std::string("(none)") : t) +
+                                            " is not understood", false);
+    }
+    for (const auto& a : c.attrs) r.take(a.name);
+  }
+};
+
+// Paths in a machine document: apply f to each (field map, profiles, coil tables, bunch file).
+void for_each_path(json& m, const std::function<void(json&)>& f) {
+  if (m.contains("field") && m["field"].contains("map")) f(m["field"]["map"]);
+  for (const char* list : {"cavities", "trimcoils"}) {
+    if (!m.contains(list) || !m[list].is_array()) continue;
+    for (auto& e : m[list])
+      for (const char* k : {"profile", "table"})
+        if (e.is_object() && e.contains(k) && e[k].is_string()) f(e[k]);
+  }
+  if (m.contains("bunch") && m["bunch"].is_object() && m["bunch"].contains("file") && m["bunch"]["file"].is_string())
+    f(m["bunch"]["file"]);
+}
+
+std::string folder(const std::string& d) {
+  return fs::absolute(d.empty() ? fs::path(".") : fs::path(d)).lexically_normal().string();
+}
+
+}  // namespace
+
+void rebase_paths(json& m, const std::string& from_dir, const std::string& to_dir) {
+  const fs::path from = folder(from_dir), to = folder(to_dir);
+  for_each_path(m, [&](json& p) {
+    const std::string s = p.get<std::string>();
+    if (s.empty()) return;
+    fs::path abs = fs::path(s).is_absolute() ? fs::path(s) : from / s;
+    abs = abs.lexically_normal();
+    fs::path rel = abs.lexically_relative(to);
+    p = rel.empty() ? abs.string() : rel.string();
+  });
+}
+
+OpalImport import_opal(const std::string& text, const std::string& name, const std::string& in_dir,
+                       const std::string& out_dir, double opal_version, bool check_files) {
+  Input in(text, name, opal_version);
+  Importer imp{in, in_dir, opal_version, check_files, {}, {}};
+  imp.notes = in.notes();
+  json m = imp.run();
+  OpalImport out;
+  // The commands as this import reads them, with paths relative to the input's folder: what an
+  // export's annotation recorded, if nothing was edited since.
+  json opal_part = m;
+  rebase_paths(opal_part, "", in_dir);
+  if (auto ann = read_annotation(text, name)) {
+    const long line = ann->line;
+    if (annotation_matches(ann->opal, opal_part)) {
+      json restored = ann->machine;
+      rebase_paths(restored, in_dir, out_dir);
+      out.machine = restored;
+      out.from_annotation = true;
+      imp.notes.push_back({line, "turnfit annotation: the commands are those turnfit-export-opal wrote, so the machine "
+                                 "it records is restored (names, descriptions, effects, exact values)", true});
+    } else {
+      imp.notes.push_back({line, "turnfit annotation: the commands changed since turnfit-export-opal wrote them "
+                                 "(" + annotation_difference(ann->opal, opal_part) + "), so it is not used: "
+                                 "the machine is read from the commands alone", false});
+    }
+  }
+  if (!out.from_annotation) {
+    rebase_paths(m, "", out_dir);
+    out.machine = m;
+  }
+  out.notes = imp.notes;
+  std::stable_sort(out.notes.begin(), out.notes.end(), [](const Note& a, const Note& b) { return a.line < b.line; });
+  return out;
+}
+
+}  // namespace turnfit
