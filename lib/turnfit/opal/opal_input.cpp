@@ -1,6 +1,7 @@
 // OPAL input language: tokens, statements, IF blocks and lazily evaluated expressions.
 #include "turnfit/opal/opal_input.hpp"
 
+#include <algorithm>
 #include <cctype>
 #include <cmath>
 #include <functional>
@@ -99,7 +100,8 @@ struct Definition {
   bool deferred = false;
   double value = 0;  // immediate definitions
 };
-constexpr long kEnd = std::numeric_limits<long>::max();  // "after the whole input": deferred values
+constexpr long kEnd = std::numeric_limits<long>::max();
+constexpr size_t kAttributes = 10000;  // attributes of one command (OPAL's have a few dozen)  // "after the whole input": deferred values
 
 }  // namespace
 
@@ -118,10 +120,10 @@ struct Input::Impl {
   const Definition* definition(const std::string& key, long at) const {
     auto it = vars.find(key);
     if (it == vars.end()) return nullptr;
-    const Definition* d = nullptr;
-    for (const auto& x : it->second)
-      if (x.seq < at) d = &x;
-    return d;
+    // Definitions are kept in input order: the last one before `at`.
+    const auto& defs = it->second;
+    auto k = std::lower_bound(defs.begin(), defs.end(), at, [](const Definition& x, long a) { return x.seq < a; });
+    return k == defs.begin() ? nullptr : &*std::prev(k);
   }
 
   Error error(long line, const std::string& msg) const { return data_error(name, line, msg); }
@@ -422,6 +424,7 @@ struct Input::Impl {
       commands.push_back(std::move(c));
       return;
     }
+    std::set<std::string> names;
     while (k < st.size()) {
       if (!(st[k].kind == Kind::punct && st[k].text == ","))
         throw error(st[k].line, "expected ',' before " + show(st[k]));
@@ -450,8 +453,9 @@ struct Input::Impl {
         }
         if (a.value.empty()) throw error(a.line, "attribute " + show(st[k - 1]) + " has no value after '='");
       }
-      for (const auto& b : c.attrs)
-        if (b.name == a.name) throw error(a.line, "attribute " + quote(a.spelled) + " is given twice");
+      if (!names.insert(a.name).second) throw error(a.line, "attribute " + quote(a.spelled) + " is given twice");
+      if (c.attrs.size() >= kAttributes)
+        throw error(a.line, "more than " + std::to_string(kAttributes) + " attributes in one command");
       c.attrs.push_back(std::move(a));
     }
     commands.push_back(std::move(c));
@@ -539,6 +543,12 @@ struct Input::Impl {
       return v;
     }
     double unary() {
+      if (++depth > 200) throw bad("expression nested too deeply");
+      const double v = unary_inner();
+      --depth;
+      return v;
+    }
+    double unary_inner() {
       if (punct("-")) {
         ++i;
         return -unary();
