@@ -293,23 +293,48 @@ TEST_CASE("opal export: ring8 and the PSI example import back to the same machin
   }
 }
 
-TEST_CASE("opal export: an edited export is read from its commands, the annotation set aside", "[opal][shared]") {
+TEST_CASE("opal export: an edited export takes the edited sections from its commands, the rest from the annotation",
+          "[opal][shared]") {
   TURNFIT_REQUIRE_SHARED(path, "data/psi-ring/bfield.dat");
-  const Machine m = load_machine(aeo());
+  Machine m = load_machine(ring8("machine.json"));
   Exported e;
-  export_into(e, m, false);
+  export_into(e, m, true);
   std::string text = e.text;
-  const std::string volt = "VOLT = 0.847,";
-  const size_t at = text.find(volt);
+  const std::string volt = "VOLT = 0.85672104,";
+  size_t at = text.find(volt);
   REQUIRE(at != std::string::npos);
   text.replace(at, volt.size(), "VOLT = 0.9,");
   const OpalImport r = import_opal(text, e.dir.path + "/x.in", e.dir.path, e.dir.path);
   CHECK_FALSE(r.from_annotation);
   CHECK(r.machine["cavities"][0]["voltage_MV"] == 0.9);
+  // What OPAL cannot say survives the edit: the name, the bunch, the exact probe geometry.
+  CHECK(r.machine["name"] == "ring8");
+  CHECK(r.machine["bunch"]["sigma_E_MeV"] == 0.03);
+  CHECK(r.machine["probes"] == m.doc["probes"]);
+  CHECK(r.machine["description"].get<std::string>().find("Edited in OPAL after turnfit-export-opal: cavities") !=
+        std::string::npos);
   bool said = false;
-  for (const auto& n : r.notes) said = said || (!n.explained && n.text.find("changed since") != std::string::npos &&
-                                                n.text.find("cavities") != std::string::npos);
+  for (const auto& n : r.notes) said = said || n.text.find("cavities changed since") != std::string::npos;
   CHECK(said);
+
+  // An edit the annotation's machine no longer fits (an effect names a cavity that was
+  // renamed in OPAL): the machine comes from the commands alone, with a warning.
+  m.doc["effects"] = json::array({{{"type", "voltage-tilt"}, {"cavity", "main1"}, {"slope", 0.01}}});
+  revalidate(m);
+  Exported f;
+  export_into(f, m, true);
+  text = f.text;
+  at = text.find("main1: RFCAVITY");
+  REQUIRE(at != std::string::npos);
+  text.replace(at, 5, "gapA1");
+  for (size_t k = text.find("main1,"); k != std::string::npos; k = text.find("main1,")) text.replace(k, 5, "gapA1");
+  const OpalImport s = import_opal(text, f.dir.path + "/x.in", f.dir.path, f.dir.path);
+  CHECK(s.machine["cavities"][0]["name"] == "gapA1");
+  CHECK_FALSE(s.machine.contains("effects"));
+  CHECK(s.machine["name"] == "x");
+  bool warned = false;
+  for (const auto& n : s.notes) warned = warned || (!n.explained && n.text.find("no longer fit") != std::string::npos);
+  CHECK(warned);
 }
 
 TEST_CASE("opal export: a fit exports with its values, and OPAL's sign and window conventions", "[opal][shared]") {

@@ -57,16 +57,13 @@ std::optional<Annotation> read_annotation(const std::string& text, const std::st
   return out;
 }
 
-bool annotation_matches(const json& recorded, const json& now) {
-  return annotation_difference(recorded, now).empty();
-}
-
-std::string annotation_difference(const json& recorded, const json& now) {
+std::vector<std::string> changed_sections(const json& recorded, const json& now) {
+  std::vector<std::string> out;
   for (const char* s : kSections) {
     const bool a = recorded.contains(s), b = now.contains(s);
-    if (a != b || (a && recorded[s] != now[s])) return s;
+    if (a != b || (a && recorded[s] != now[s])) out.push_back(s);
   }
-  return {};
+  return out;
 }
 
 }  // namespace turnfit

@@ -6,6 +6,7 @@
 #include <nlohmann/json.hpp>
 #include <optional>
 #include <string>
+#include <vector>
 
 namespace turnfit {
 
@@ -25,12 +26,10 @@ std::string write_annotation(const nlohmann::json& opal_part, const nlohmann::js
 /// The annotation in text, if any (EX_DATAERR naming the line when it is not turnfit's).
 std::optional<Annotation> read_annotation(const std::string& text, const std::string& name);
 
-/// Whether the commands read now give what the annotation recorded (the machine sections
-/// OPAL's commands describe, compared exactly).
-bool annotation_matches(const nlohmann::json& recorded, const nlohmann::json& now);
-
-/// The first section where they differ, for the user.
-std::string annotation_difference(const nlohmann::json& recorded, const nlohmann::json& now);
+/// The machine sections OPAL's commands describe (particle, field, rf, cavities, trimcoils,
+/// probes, injection, tracking) where the commands read now do not give exactly what the
+/// annotation recorded: the sections edited since the export.
+std::vector<std::string> changed_sections(const nlohmann::json& recorded, const nlohmann::json& now);
 
 /// Rewrites a machine document's file paths (field map, profiles, coil tables, bunch file)
 /// from relative to `from_dir` to relative to `to_dir` ("" is the current folder).

@@ -11,8 +11,9 @@
 #include "turnfit/io/json.hpp"
 #include "turnfit/io/limits.hpp"
 #include "turnfit/io/text.hpp"
-#include "turnfit/opal/opal_io.hpp"
+#include "turnfit/machine/machine.hpp"
 #include "turnfit/opal/annotation.hpp"
+#include "turnfit/opal/opal_io.hpp"
 
 namespace turnfit {
 namespace {
@@ -308,7 +309,7 @@ struct Importer {
       if (c.keyword == "TRIMCOIL" && !c.label.empty()) {
         bool used = false;
         for (const auto& t : trims) used = used || t["name"] == c.label;
-        if (!used && by_label[upper(c.label)] == &c && !cyc->find("TRIMCOIL"))
+        if (!used && by_label[upper(c.label)] == &c)
           note(c.line, "TRIMCOIL " + c.label + " is in no CYCLOTRON's TRIMCOIL list: not imported");
       }
 
@@ -377,7 +378,6 @@ struct Importer {
       r.explain("BCURRENT", "beam current: no space charge in turnfit yet");
       r.finish();
     }
-    m["rf"] = m["rf"];
 
     // Elements of the line in order.
     json cavities = json::array(), probes = json::array();
@@ -761,20 +761,38 @@ OpalImport import_opal(const std::string& text, const std::string& name, const s
   rebase_paths(opal_part, "", in_dir);
   if (auto ann = read_annotation(text, name)) {
     const long line = ann->line;
-    if (annotation_matches(ann->opal, opal_part)) {
-      json restored = ann->machine;
+    const std::vector<std::string> changed = changed_sections(ann->opal, opal_part);
+    std::string list;
+    for (const auto& s : changed) list += (list.empty() ? "" : ", ") + s;
+    json restored = ann->machine;
+    for (const auto& s : changed) {
+      if (opal_part.contains(s)) restored[s] = opal_part[s];
+      else restored.erase(s);
+    }
+    if (!changed.empty() && restored.contains("description") && restored["description"].is_string())
+      restored["description"] = restored["description"].get<std::string>() + " Edited in OPAL after turnfit-export-opal: " +
+                                list + " read from the commands.";
+    try {
+      // The edited sections must still fit what the annotation keeps (effects name cavities,
+      // design variables point into the document).
+      if (!changed.empty()) machine_from_json(restored, name + " (turnfit annotation)", in_dir);
       rebase_paths(restored, in_dir, out_dir);
       out.machine = restored;
-      out.from_annotation = true;
-      imp.notes.push_back({line, "turnfit annotation: the commands are those turnfit-export-opal wrote, so the machine "
-                                 "it records is restored (names, descriptions, effects, exact values)", true});
-    } else {
-      imp.notes.push_back({line, "turnfit annotation: the commands changed since turnfit-export-opal wrote them "
-                                 "(" + annotation_difference(ann->opal, opal_part) + "), so it is not used: "
-                                 "the machine is read from the commands alone", false});
+      out.from_annotation = changed.empty();
+      imp.notes.push_back({line, changed.empty()
+                                     ? "turnfit annotation: the commands are those turnfit-export-opal wrote, so the "
+                                       "machine it records is restored (names, descriptions, effects, exact values)"
+                                     : "turnfit annotation: " + list + " changed since turnfit-export-opal wrote the "
+                                       "input and " + std::string(changed.size() == 1 ? "is" : "are") +
+                                       " read from the commands; the rest of the machine it records is restored",
+                           true});
+    } catch (const Error& e) {
+      imp.notes.push_back({line, "turnfit annotation: the edited commands (" + list + ") no longer fit the machine it "
+                                 "records (" + clip_message(e.what()) + "), so it is not used: the machine is read "
+                                 "from the commands alone", false});
     }
   }
-  if (!out.from_annotation) {
+  if (out.machine.is_null()) {
     rebase_paths(m, "", out_dir);
     out.machine = m;
   }

@@ -64,6 +64,9 @@ SLOTS = [
     ("turnfit-localsearch", "problem", "json", os.path.join(ROOT, "tests", "fuzz", "seeds", "problem_turns.json"), "problem.json", [], ["{in}", "-o", "{dir}/out.json"], ["out.json"]),
     ("turnfit-localsearch", "start design", "json", R8 + "/truth-dvars.json", "start.json", [], ["{dir}/problem.json", "--start", "{in}", "-o", "{dir}/out.json"], ["out.json"]),
     ("turnfit-diagnose", "problem", "json", os.path.join(ROOT, "tests", "fuzz", "seeds", "problem_turns.json"), "problem.json", [], ["{in}", "-o", "{dir}/out.json"], ["out.json"]),
+    ("turnfit-import-opal", "OPAL input", "text", DATA + "/opal_minimal.in", "ring.in", [], ["{in}", "-q", "-o", "{dir}/out.json"], ["out.json"]),
+    ("turnfit-export-opal", "machine", "json", R8 + "/machine.json", "machine.json", RING8_FILES[1:], ["{in}", "-q", "--map-out", "{dir}/map.dat", "--dist-out", "{dir}/dist.dat", "-o", "{dir}/out.in"], ["out.in", "map.dat", "dist.dat"]),
+    ("turnfit-export-opal", "dvars", "json", R8 + "/truth-dvars.json", "dvars.json", [], [R8 + "/machine.json", "-q", "--dvars", "{in}", "--map-out", "{dir}/map.dat", "--dist-out", "{dir}/dist.dat", "-o", "{dir}/out.in"], ["out.in", "map.dat", "dist.dat"]),
 ]
 
 # Where the first number to break is looked for in a text format (default: after the first line
