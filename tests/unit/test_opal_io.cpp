@@ -12,6 +12,7 @@
 #include "turnfit/opal/annotation.hpp"
 #include "turnfit/opal/opal_input.hpp"
 #include "turnfit/opal/opal_io.hpp"
+#include "turnfit/trimcoil/trimcoil.hpp"
 
 using namespace turnfit;
 using nlohmann::json;
@@ -348,4 +349,49 @@ TEST_CASE("opal export: a fit exports with its values, and OPAL's sign and windo
   CHECK(e.text.find("PHIMIN = 0, PHIMAX = 360;") != std::string::npos);
   const OpalImport bare = import_opal(commands_only(e.text), e.dir.path + "/x.in", e.dir.path, e.dir.path);
   CHECK(bare.machine["trimcoils"][2]["bmax_T"] == 1.5e-4);
+}
+
+TEST_CASE("opal export: coils about an origin, phase coils and windows through azimuth 0 come back as the same fields",
+          "[opal][shared]") {
+  TURNFIT_REQUIRE_SHARED(path, "data/psi-ring/bfield.dat");
+  Machine m = load_machine(aeo());
+  // A psi-phase coil as turnfit-tc-fit writes it (about its window centre, r in m from 4.4 m),
+  // on sectors 1 and 3, in a window from 300 to 420 deg.
+  m.doc["trimcoils"].push_back({{"name", "TCx"}, {"type", "psi-phase"}, {"rmin_mm", 4300.0}, {"rmax_mm", 4500.0},
+                                {"bmax_T", 2e-4}, {"coef_origin_mm", 4400.0}, {"coefnum", {0.1, 3.0, -20.0}},
+                                {"coefdenom", {1.0, 0.5, 40.0}}, {"sectors", {1, 3}}, {"phimin_deg", 300.0},
+                                {"phimax_deg", 420.0}});
+  revalidate(m);
+  Exported e;
+  export_into(e, m, false);
+  bool warned = false;
+  for (const auto& w : e.warnings) warned = warned || w.find("TCx sits on sectors") != std::string::npos;
+  CHECK(warned);
+  CHECK(e.text.find("TCx: TRIMCOIL, TYPE = \"PSI-PHASE\", RMIN = 4300, RMAX = 4500, BMAX = -0.0002,") != std::string::npos);
+  CHECK(e.text.find("PHIMIN = 300, PHIMAX = 60;") != std::string::npos);
+  const OpalImport bare = import_opal(commands_only(e.text), e.dir.path + "/x.in", e.dir.path, e.dir.path);
+  const Machine b = machine_from_json(bare.machine, "bare", e.dir.path);
+  REQUIRE(b.trimcoils.size() == 2);
+  const TrimCoil &x = m.trimcoils[1], &y = b.trimcoils[1];
+  CHECK(y.type == "psi-phase");
+  CHECK(y.coef_origin_mm == 0);
+  CHECK(y.phimin_deg == 300);
+  CHECK(y.phimax_deg == 420);
+  CHECK(y.sectors.empty());  // OPAL spreads a coil over every sector (warned above)
+  // The expanded polynomials give the same shape on the coil's window, to rounding.
+  TrimCoil xs = x, ys = y;
+  xs.bmax_T = ys.bmax_T = 1;
+  xs.sectors.clear();
+  TrimCoilField fx(xs, 1), fy(ys, 1);
+  double worst = 0, peak = 0;
+  for (int i = 0; i <= 200; ++i) {
+    const double r = 4.3 + 0.2 * i / 200;
+    double a, da, c, dc;
+    fx.shape_exact(r, a, da);
+    fy.shape_exact(r, c, dc);
+    worst = std::max(worst, std::fabs(a - c));
+    peak = std::max(peak, std::fabs(a));
+  }
+  CHECK(peak > 0);
+  CHECK(worst <= 1e-9 * peak);
 }
