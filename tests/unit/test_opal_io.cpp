@@ -62,6 +62,14 @@ std::string commands_only(const std::string& text) {
   return out;
 }
 
+// Every line the import read and did not use has its reason (nothing "not understood").
+void check_explained(const OpalImport& r) {
+  for (const auto& n : r.notes) {
+    INFO(n.line << ": " << n.text);
+    CHECK(n.explained);
+  }
+}
+
 struct Exported {
   test::TempDir dir;
   std::string text;
@@ -167,10 +175,7 @@ TEST_CASE("opal import: cyclotron2.in as OPAL 2022.1 reads it, every line explai
   TURNFIT_REQUIRE_SHARED(path, "data/psi-ring/cyclotron2.in");
   const std::string dir = std::filesystem::path(path).parent_path().string();
   const OpalImport r = import_opal(read_input(path).text, path, dir, dir);
-  for (const auto& n : r.notes) {
-    INFO(n.line << ": " << n.text);
-    CHECK(n.explained);
-  }
+  check_explained(r);
   const Machine m = machine_from_json(r.machine, "imported", dir);
   REQUIRE(m.cavities.size() == 5);
   CHECK(m.cavities[2].name == "Rf2");
@@ -204,10 +209,7 @@ TEST_CASE("opal import: cyclotronTune-2-1.in, every line explained", "[opal][sha
   TURNFIT_REQUIRE_SHARED(path, "data/psi-ring/cyclotronTune-2-1.in");
   const std::string dir = std::filesystem::path(path).parent_path().string();
   const OpalImport r = import_opal(read_input(path).text, path, dir, dir);
-  for (const auto& n : r.notes) {
-    INFO(n.line << ": " << n.text);
-    CHECK(n.explained);
-  }
+  check_explained(r);
   const Machine m = machine_from_json(r.machine, "imported", dir);
   CHECK(m.cavities.empty());
   CHECK(m.injection->r_mm == 2037);
@@ -226,10 +228,7 @@ TEST_CASE("opal export: ring8 and the PSI example import back to the same machin
     export_into(e, m, turnfit_map);
     const OpalImport back = import_opal(e.text, e.dir.path + "/x.in", e.dir.path, e.dir.path);
     CHECK(back.from_annotation);
-    for (const auto& n : back.notes) {
-      INFO(n.line << ": " << n.text);
-      CHECK(n.explained);
-    }
+    check_explained(back);
     const Machine m2 = machine_from_json(back.machine, "back", e.dir.path);
     // Exactly the same document, paths aside (they are relative to another folder).
     CHECK(absolute_paths(m2.doc, e.dir.path) == absolute_paths(m.doc, m.dir));
