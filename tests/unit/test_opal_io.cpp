@@ -162,6 +162,15 @@ TEST_CASE("opal input: errors name the line and the token", "[opal]") {
   CHECK(msg.find("closing the IF block") != std::string::npos);
 }
 
+TEST_CASE("opal input: strings quoted, from STRING variables, or bare words upper-cased as OPAL reads them", "[opal]") {
+  opal::Input in("STRING f = \"map.dat\";\nC, A = \"x.dat\", B = f, D = bfield.dat, E = 'y';", "t.in", 1);
+  const auto& c = in.commands().back();
+  CHECK(in.string(*c.find("A")) == "x.dat");
+  CHECK(in.string(*c.find("B")) == "map.dat");
+  CHECK(in.string(*c.find("D")) == "BFIELD.DAT");
+  CHECK(in.string(*c.find("E")) == "y");
+}
+
 TEST_CASE("opal input: IF blocks take the branch of the OPAL version asked for", "[opal]") {
   const std::string text =
       "IF (OPALVERSION >= 20100) {\n  REAL x = 1;\n} ELSE {\n  REAL x = 2;\n}\nC, Y = x;";

@@ -120,7 +120,10 @@ struct Importer {
     p = fs::absolute(p).lexically_normal();
     std::error_code ec;
     if (check_files && !fs::is_regular_file(p, ec))
-      throw r.error(a, what + " " + quote(f) + " is not there (looked for " + quote(p.string()) + ")");
+      throw r.error(a, what + " " + quote(f) + " is not there (looked for " + quote(p.string()) + ")" +
+                           (a.value.size() == 1 && a.value[0].kind == opal::Token::Kind::name
+                                ? "; OPAL upper-cases an unquoted name: quote it"
+                                : ""));
     return p.string();
   }
 

@@ -748,7 +748,7 @@ std::string Input::string(const Attribute& a) const {
     if (t.kind == Kind::name) {
       const Definition* d = impl_->definition(upper(t.text), a.seq);
       if (d && d->type == "STRING") return d->expr[0].text;
-      return t.text;
+      return upper(t.text);  // OPAL reads an unquoted word upper-cased
     }
   }
   throw impl_->error(a.line, "attribute " + quote(a.spelled) + " needs a string, got " +

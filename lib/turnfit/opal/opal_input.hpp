@@ -74,7 +74,7 @@ class Input {
 
   /// A number: an arithmetic expression.
   double number(const Attribute& a) const;
-  /// A string: a quoted string, a bare word, or a STRING variable.
+  /// A string: a quoted string, a STRING variable, or a bare word upper-cased (as OPAL reads it).
   std::string string(const Attribute& a) const;
   /// A boolean: TRUE/FALSE or a logical expression; a bare flag is TRUE.
   bool boolean(const Attribute& a) const;
