@@ -373,7 +373,7 @@ TEST_CASE("opal export: coils about an origin, phase coils and windows through a
   Exported e;
   export_into(e, m, false);
   bool warned = false;
-  for (const auto& w : e.warnings) warned = warned || w.find("TCx sits on sectors") != std::string::npos;
+  for (const auto& w : e.warnings) warned = warned || w.find("'TCx' sits on sectors") != std::string::npos;
   CHECK(warned);
   CHECK(e.text.find("TCx: TRIMCOIL, TYPE = \"PSI-PHASE\", RMIN = 4300, RMAX = 4500, BMAX = -0.0002,") != std::string::npos);
   CHECK(e.text.find("PHIMIN = 300, PHIMAX = 60;") != std::string::npos);
@@ -402,4 +402,69 @@ TEST_CASE("opal export: coils about an origin, phase coils and windows through a
   }
   CHECK(peak > 0);
   CHECK(worst <= 1e-9 * peak);
+}
+
+TEST_CASE("opal input: STOP ends the input, ':=' values are taken at the RUN", "[opal]") {
+  // OPAL reads no further than STOP: an undefined name or an unclosed string after it is no error.
+  opal::Input in("REAL b = 1;\nREAL a := b * 2;\nC, X := a, Y = a;\nb = 5;\nRUN, METHOD = \"CYCLOTRON-T\";\nb = 7;\n"
+                 "STOP;\nREAL y = undefined;\n\"unclosed\n",
+                 "t.in", 1);
+  const auto& cmds = in.commands();
+  REQUIRE(cmds.size() == 3);  // C, RUN, STOP
+  const auto& c = cmds[0];
+  CHECK(in.number(*c.find("Y")) == 2);   // '=': where it stands (b = 1)
+  CHECK(in.number(*c.find("X")) == 14);  // ':=': after the whole input (b = 7) ...
+  in.set_evaluation_point(cmds[1].seq);
+  CHECK(in.number(*c.find("X")) == 10);  // ... or at the RUN (b = 5), as the importer asks
+  bool noted = false;
+  for (const auto& n : in.notes()) noted = noted || n.text.find("OPAL reads no further (2 more lines not read)") != std::string::npos;
+  CHECK(noted);
+}
+
+TEST_CASE("opal import: what the machine cannot hold is refused at its line", "[opal]") {
+  const std::string head =
+      "R: CYCLOTRON, TYPE = \"RING\", FMAPFN = \"m.dat\", SYMMETRY = 8, CYHARMON = 6, RFFREQ = 50, RINIT = 2000, PHIINIT = 0;\n"
+      "C1: RFCAVITY, TYPE = \"SINGLEGAP\", VOLT = 1, FREQ = 50, RMAX = 5000;\n"
+      "B: BEAM, PARTICLE = PROTON, PC = 0.4;\n";
+  auto refusal = [&](const std::string& tail) {
+    std::string msg;
+    CHECK(test::error_code([&] { import_opal(head + tail, "t.in", "", "", kDefaultOpalVersion, false); }, &msg) == 65);
+    return msg;
+  };
+  std::string m = refusal("L: LINE = (R, C1, c1);\n");
+  CHECK(m.find("t.in:4: LINE L: 'c1' appears twice") != std::string::npos);
+  m = refusal("L: LINE = (R, C1);\nTRACK, LINE = L, BEAM = B, MAXSTEPS = 1e13, STEPSPERTURN = 1000;\n");
+  CHECK(m.find("t.in:5: TRACK MAXSTEPS: 10000000000000 steps are 10000000000 turns of 1000: turnfit tracks at most 1e6 turns") !=
+        std::string::npos);
+  std::string coil = head;
+  coil.replace(coil.find("PHIINIT = 0;"), 12, "PHIINIT = 0, TRIMCOIL = T;");
+  std::string msg;
+  CHECK(test::error_code([&] {
+          import_opal("T: TRIMCOIL, TYPE = \"PSI-BFIELD\", RMIN = 1000, RMAX = 2000, COEFDENOM = {-1.5, 1};\n" + coil +
+                          "L: LINE = (R, C1);\n",
+                      "t.in", "", "", kDefaultOpalVersion, false);
+        }, &msg) == 65);
+  CHECK(msg.find("t.in:1: T: TRIMCOIL COEFDENOM: the denominator is 0 within RMIN..RMAX (near r = 1500 mm)") !=
+        std::string::npos);
+}
+
+TEST_CASE("opal export: names cannot break the input (control characters in notes, labels made OPAL names)",
+          "[opal][shared]") {
+  TURNFIT_REQUIRE_SHARED(path, "data/psi-ring/bfield.dat");
+  Machine m = load_machine(aeo());
+  // A coil name that would end a comment line and the input, and one OPAL reads as a keyword.
+  m.doc["trimcoils"][0]["name"] = "tc\nSTOP;\n//turnfit| {";
+  m.doc["trimcoils"][0]["sectors"] = {1};
+  m.doc["cavities"][0]["name"] = "real";
+  m.doc["cavities"][1]["name"] = "REAL_";
+  revalidate(m);
+  Exported e;
+  export_into(e, m, false);
+  CHECK(e.text.find("\nSTOP;\n//turnfit| {") == std::string::npos);
+  const OpalImport back = import_opal(e.text, e.dir.path + "/x.in", e.dir.path, e.dir.path);
+  CHECK(back.from_annotation);
+  CHECK(back.machine["trimcoils"][0]["name"] == "tc\nSTOP;\n//turnfit| {");
+  const OpalImport bare = import_opal(commands_only(e.text), e.dir.path + "/x.in", e.dir.path, e.dir.path);
+  CHECK(bare.machine["cavities"][0]["name"] == "real_");
+  CHECK(bare.machine["cavities"][1]["name"] == "REAL__2");
 }

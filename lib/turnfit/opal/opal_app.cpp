@@ -1,6 +1,7 @@
 // turnfit-import-opal and turnfit-export-opal: options and runs.
 #include <filesystem>
 #include <iostream>
+#include <memory>
 #include <sstream>
 
 #include "turnfit/field/map_io.hpp"
@@ -85,13 +86,6 @@ int run_import_opal(const ImportOpalOptions& o) {
     throw data_error(in.name, first_unexplained->line,
                      first_unexplained->text + " (--strict; " + std::to_string(unexplained) + " line" +
                          (unexplained == 1 ? "" : "s") + " not understood in all)");
-  // What was written must load as a machine.
-  const std::string out_name = o.common.output == "-" ? std::string("<stdout>") : o.common.output;
-  try {
-    machine_from_json(r.machine, in.name + " (imported machine)", folder_of(o.common.output));
-  } catch (const Error& e) {
-    throw Error(ExitCode::data, e.what());
-  }
   write_output(o.common.output, json_text(in_reading_order(r.machine), 1) + "\n");
   return 0;
 }
@@ -108,8 +102,8 @@ void add_export_opal_options(CLI::App& app, ExportOpalCliOptions& o) {
   app.add_option("--map-out", o.files.map_out,
                  "Also write the main field in OPAL's RING format to this file and use it (needed for turnfit-format maps)");
   app.add_option("--dist-out", o.files.dist_out,
-                 "Also write OPAL's one-particle FROMFILE distribution to this file (default: the input names "
-                 "'dist1.dat' beside it, which you provide)");
+                 "Write OPAL's one-particle FROMFILE distribution here (default: <output stem>-dist.dat beside "
+                 "the output; for stdout the input names dist1.dat, which you provide)");
   cli::add_common_options(app, o.common, cli::kOutput);
 }
 
@@ -120,28 +114,57 @@ int run_export_opal(const ExportOpalCliOptions& o) {
   Machine m = load_machine(o.machine);
   if (!o.sets.empty()) apply_sets(m, o.sets);
   if (!o.dvars.empty()) apply_dvars_file(m, o.dvars);
+  const bool to_file = o.common.output != "-";
   const std::string out_dir = folder_of(o.common.output);
+  // The distribution: as asked, else beside a file output (<stem>-dist.dat), else named only.
+  std::string dist_out = o.files.dist_out;
+  if (dist_out.empty() && to_file)
+    dist_out = (fs::path(o.common.output).parent_path() / (fs::path(o.common.output).stem().string() + "-dist.dat")).string();
+  // No output may land on another output or on a file the machine reads (a measured map
+  // overwritten by its 9-digit copy would be lost without a word).
+  auto canon = [](const std::string& p) { return fs::weakly_canonical(fs::absolute(p)).string(); };
+  std::vector<std::pair<std::string, std::string>> outs;
+  if (to_file) outs.push_back({"-o", o.common.output});
+  if (!o.files.map_out.empty()) outs.push_back({"--map-out", o.files.map_out});
+  if (!dist_out.empty()) outs.push_back({o.files.dist_out.empty() ? "the distribution file" : "--dist-out", dist_out});
+  std::vector<std::string> inputs = {m.field.map};
+  for (const auto& c : m.cavities) inputs.push_back(c.profile);
+  for (const auto& t : m.trimcoils) inputs.push_back(t.table);
+  if (m.bunch) inputs.push_back(m.bunch->file);
+  if (o.machine != "-") inputs.push_back(o.machine);
+  if (!o.dvars.empty() && o.dvars != "-") inputs.push_back(o.dvars);
+  for (size_t i = 0; i < outs.size(); ++i) {
+    for (size_t j = 0; j < i; ++j)
+      if (canon(outs[i].second) == canon(outs[j].second))
+        throw usage_error(outs[i].first + " and " + outs[j].first + " name the same file " + quote(outs[i].second));
+    for (const auto& in : inputs)
+      if (!in.empty() && canon(in) == canon(outs[i].second))
+        throw usage_error(outs[i].first + " " + quote(outs[i].second) + " is a file the machine reads: it would be overwritten");
+  }
   auto rel = [&](const std::string& p) {
     const fs::path abs = fs::absolute(p).lexically_normal();
     const fs::path rel = abs.lexically_relative(fs::absolute(out_dir.empty() ? "." : out_dir).lexically_normal());
     return rel.empty() ? abs.string() : rel.string();
   };
   const std::string map_file = o.files.map_out.empty() ? std::string() : rel(o.files.map_out);
-  const std::string dist_file = o.files.dist_out.empty() ? std::string("dist1.dat") : rel(o.files.dist_out);
+  const std::string dist_file = dist_out.empty() ? std::string("dist1.dat") : rel(dist_out);
   std::vector<std::string> warnings;
-  if (o.files.dist_out.empty())
-    warnings.push_back("the input reads its particle from 'dist1.dat' beside it: two lines, '1' and "
+  if (dist_out.empty())
+    warnings.push_back("the input reads its particle from 'dist1.dat' in the folder OPAL runs in: two lines, '1' and "
                        "'0 0 0 0 0 0' (or use --dist-out)");
   const std::string text = export_opal(m, out_dir, map_file, dist_file, warnings);
-  // The files the input names, then the input.
+  // Every output is created (as a temporary) before any is committed, so a refusal (an
+  // unwritable folder) leaves none of them behind.
+  std::vector<std::pair<std::unique_ptr<OutputFile>, std::string>> files;
   if (!o.files.map_out.empty()) {
-    PolarFieldMap map = read_field_map(m.field.map, parse_map_format(m.field.format), m.field.symmetry);
     std::ostringstream ms;
-    write_psi_ring(ms, map);
-    write_output(o.files.map_out, ms.str());
+    write_psi_ring(ms, read_field_map(m.field.map, parse_map_format(m.field.format), m.field.symmetry));
+    files.emplace_back(std::make_unique<OutputFile>(o.files.map_out), ms.str());
   }
-  if (!o.files.dist_out.empty()) write_output(o.files.dist_out, "1\n0.0 0.0 0.0 0.0 0.0 0.0\n");
-  write_output(o.common.output, text);
+  if (!dist_out.empty()) files.emplace_back(std::make_unique<OutputFile>(dist_out), "1\n0.0 0.0 0.0 0.0 0.0 0.0\n");
+  files.emplace_back(std::make_unique<OutputFile>(o.common.output), text);
+  for (auto& [f, content] : files) f->stream() << content;
+  for (auto& [f, content] : files) f->commit();
   for (const auto& w : warnings) cli::warn(o.common, "note: " + w);
   return 0;
 }

@@ -8,6 +8,7 @@
 #include <set>
 #include <sstream>
 
+#include "turnfit/field/map_io.hpp"
 #include "turnfit/io/error.hpp"
 #include "turnfit/io/json.hpp"
 #include "turnfit/io/text.hpp"
@@ -108,7 +109,7 @@ std::string export_opal(const Machine& m, const std::string& out_dir, const std:
     if (t.type == "table")
       throw data_error(mname, 0, where + ": trim coil " + quote(t.name) + " is a table, which OPAL has no type for");
     if (!t.sectors.empty())
-      warnings.push_back("trim coil " + t.name + " sits on sectors of its own; OPAL spreads it over every sector");
+      warnings.push_back("trim coil " + quote(t.name) + " sits on sectors of its own; OPAL spreads it over every sector");
     const std::string l = labels.make(t.name);
     coil_labels.push_back(l);
     os << l << ": TRIMCOIL, TYPE = ";
@@ -126,7 +127,7 @@ std::string export_opal(const Machine& m, const std::string& out_dir, const std:
         };
         cn = expand(cn);
         if (!cd.empty()) cd = expand(cd);
-        warnings.push_back("trim coil " + t.name + ": coefficients about r = " + num(t.coef_origin_mm) +
+        warnings.push_back("trim coil " + quote(t.name) + ": coefficients about r = " + num(t.coef_origin_mm) +
                            " mm are expanded to OPAL's polynomials in r");
       }
       os << (t.type == "psi-phase" ? "\"PSI-PHASE\"" : "\"PSI-BFIELD\"") << ", RMIN = " << num(t.rmin_mm)
@@ -154,7 +155,11 @@ std::string export_opal(const Machine& m, const std::string& out_dir, const std:
     map = path_for(m.field.map, out_dir);
   }
   os << ring << ": CYCLOTRON, TYPE = \"RING\", FMAPFN = " << quoted(map, mname);
-  if (m.field.symmetry > 0) os << ", SYMMETRY = " << m.field.symmetry;
+  // OPAL's SYMMETRY has no default: a machine that takes it from the map gets the map's.
+  const int symmetry = m.field.symmetry > 0
+                           ? m.field.symmetry
+                           : read_field_map(m.field.map, parse_map_format(m.field.format), 0).grid().symmetry;
+  os << ", SYMMETRY = " << symmetry;
   if (m.field.scale != 1) os << ", BSCALE = " << num(m.field.scale);
   os << ",\n    CYHARMON = " << m.rf.harmonic << ", RFFREQ = " << num(m.rf.frequency_MHz) << ",\n    RINIT = "
      << num(inj.r_mm) << ", PRINIT = " << num(inj.pr_betagamma) << ", PHIINIT = " << num(inj.phi_deg);
@@ -176,7 +181,7 @@ std::string export_opal(const Machine& m, const std::string& out_dir, const std:
     members.push_back(l);
     os << l << ": RFCAVITY, TYPE = \"SINGLEGAP\", VOLT = " << num(c.voltage_MV);
     if (!c.profile.empty()) os << ", FMAPFN = " << quoted(path_for(c.profile, out_dir), mname);
-    else warnings.push_back("cavity " + c.name + " has no voltage profile (flat): OPAL's SINGLEGAP needs FMAPFN");
+    else warnings.push_back("cavity " + quote(c.name) + " has no voltage profile (flat): OPAL's SINGLEGAP needs FMAPFN");
     os << ",\n    FREQ = " << num(c.harmonic_factor * m.rf.frequency_MHz) << ", PHI0 = " << num(c.phase_deg)
        << ", ANGLE = " << num(c.angle_deg) << ", PDIS = " << num(c.pdis_mm) << ",\n    RMIN = "
        << num(c.rmin_mm + c.rshift_mm) << ", RMAX = " << num(c.rmax_mm + c.rshift_mm)
@@ -226,9 +231,16 @@ std::string export_opal(const Machine& m, const std::string& out_dir, const std:
      << ";\nENDTRACK;\n";
   std::string text = os.str();
 
-  // The annotation: what the commands import to, and the machine itself.
-  OpalImport back = import_opal(text, "turnfit-export-opal output", out_dir, out_dir, kDefaultOpalVersion, false);
-  json opal_part = back.machine;
+  // The annotation: what the commands import to, and the machine itself. An export its own
+  // import refuses is a machine OPAL's commands cannot carry: say which.
+  auto read_back = [&](const std::string& t) {
+    try {
+      return import_opal(t, mname + " (as OPAL commands)", out_dir, out_dir, kDefaultOpalVersion, false);
+    } catch (const Error& e) {
+      throw data_error(mname, 0, std::string("cannot be written for OPAL: ") + e.what());
+    }
+  };
+  json opal_part = read_back(text).machine;
   json machine = m.doc;
   rebase_paths(machine, m.dir, out_dir);
   text += "\nSTOP;\n\n// turnfit annotation (turnfit-export-opal): the machine as turnfit has it. turnfit-import-opal\n"
@@ -239,6 +251,11 @@ std::string export_opal(const Machine& m, const std::string& out_dir, const std:
   for (const auto& w : warnings) head += "// note: " + w + "\n";
   const size_t at = text.find("\nOPTION, VERSION");
   text.insert(at, head.empty() ? std::string() : head);
+  // The whole file, notes and annotation included, must read back as this machine.
+  const OpalImport whole = read_back(text);
+  if (!whole.from_annotation)
+    throw Error(ExitCode::software, "turnfit-export-opal: the input written for " + quote(mname) +
+                                        " does not read back as the machine (an export bug)");
   return text;
 }
 

@@ -102,12 +102,13 @@ std::string written(const Attribute& a) {
 }
 
 struct Importer {
-  const Input& in;
+  Input& in;
   std::string in_dir;
   double version;
   bool check_files = true;
   std::vector<Note> notes;
   std::vector<std::string> remarks;  // choices stated in the machine's description
+  std::map<std::string, long> lines_of;  // JSON pointer of the machine -> the input line it came from
 
   Error error(long line, const std::string& msg) const { return data_error(in.name(), line, msg); }
   void note(long line, const std::string& text, bool explained = true) { notes.push_back({line, text, explained}); }
@@ -132,12 +133,20 @@ struct Importer {
     std::map<std::string, const Command*> by_label;
     std::vector<const Command*> tracks, runs, selects, lines;
     std::string title;
-    bool stopped = false;
+    // The run imported is the last RUN: OPAL evaluates deferred (':=') values when it runs, and
+    // what comes after it is not part of that run.
+    const Command* last_run = nullptr;
+    for (const Command& c : cmds)
+      if (c.keyword == "RUN") last_run = &c;
+    if (last_run) in.set_evaluation_point(last_run->seq);
+    bool after_run = false;
     for (const Command& c : cmds) {
-      if (stopped) {
-        note(c.line, c.keyword_spelled + " after STOP: OPAL does not read it");
+      if (after_run) {
+        note(c.line, c.keyword_spelled + " after the RUN that is imported (line " + std::to_string(last_run->line) +
+                         "): not part of that run");
         continue;
       }
+      if (&c == last_run) after_run = true;
       if (!c.label.empty()) {
         const std::string key = upper(c.label);
         auto it = by_label.find(key);
@@ -177,7 +186,6 @@ struct Importer {
         note(c.line, "ENDTRACK: closes the TRACK block");
       } else if (k == "STOP" || k == "QUIT") {
         note(c.line, c.keyword_spelled + ": the end of OPAL's input");
-        stopped = true;
       } else if (k == "ECHO") {
         note(c.line, "ECHO: OPAL prints its text; nothing to import");
       } else if (k == "CYCLOTRON" || k == "RFCAVITY" || k == "TRIMCOIL" || k == "PROBE" || k == "BEAM" ||
@@ -226,8 +234,9 @@ struct Importer {
       auto m = by_label.find(upper(t.text));
       if (m == by_label.end()) throw error(t.line, "LINE member " + quote(t.text) + " is not defined");
       if (m->second->keyword == "LINE") throw error(t.line, "LINE member " + quote(t.text) + " is a LINE: nested lines are not read");
+      if (!in_line.insert(m->second).second)
+        throw error(t.line, "LINE " + line.label + ": " + quote(t.text) + " appears twice (turnfit's elements are unique)");
       members.push_back(m->second);
-      in_line.insert(m->second);
     }
     for (const auto* l : lines)
       if (l != &line) note(l->line, "LINE " + l->label + " is not the tracked line (" + line.label + "): not imported");
@@ -263,16 +272,22 @@ struct Importer {
       field["map"] = existing_file(r, *fm, "field map");
       field["format"] = "psi-ring";
       if (auto s = r.number("SYMMETRY")) {
-        if (*s != std::floor(*s) || *s < 1 || *s > 360) throw r.error(*r.take("SYMMETRY"), "must be a whole number in 1..360, got " + num(*s));
+        if (!(*s == std::floor(*s) && *s >= 1 && *s <= 360))
+          throw r.error(*r.take("SYMMETRY"), "must be a whole number in 1..360, got " + num(*s));
         field["symmetry"] = static_cast<int>(*s);
+      } else {
+        note(cyc->line, r.what() + ": no SYMMETRY, which OPAL needs (it has no default); turnfit takes the map's "
+                                   "sector count", false);
       }
       if (auto s = r.number("BSCALE")) field["scale"] = *s;
       if (auto s = r.number("TRIMCOILTHRESHOLD")) field["trimcoil_threshold_T"] = *s;
       m["particle"] = json::object();
       m["field"] = field;
+      lines_of["/field"] = lines_of["/rf"] = lines_of["/injection"] = cyc->line;
       json rf = json::object();
       if (auto h = r.number("CYHARMON")) {
-        if (*h != std::floor(*h) || *h < 1) throw r.error(*r.take("CYHARMON"), "must be a whole number >= 1, got " + num(*h));
+        if (!(*h == std::floor(*h) && *h >= 1 && *h <= 1e6))
+          throw r.error(*r.take("CYHARMON"), "must be a whole number in 1..1e6, got " + num(*h));
         rf["harmonic"] = static_cast<int>(*h);
       }
       if (const Attribute* a = r.take("RFFREQ")) {
@@ -290,7 +305,9 @@ struct Importer {
       if (auto z = r.number("ZINIT")) injection["z_mm"] = *z;
       if (auto z = r.number("PZINIT")) injection["pz_betagamma"] = *z;
       if (const Attribute* a = r.take("TRIMCOIL")) {
+        std::set<std::string> listed;
         for (const std::string& n : in.names(*a)) {
+          if (!listed.insert(upper(n)).second) throw r.error(*a, quote(n) + " is listed twice");
           auto t = by_label.find(upper(n));
           if (t == by_label.end() || t->second->keyword != "TRIMCOIL")
             throw r.error(*a, quote(n) + " is not a TRIMCOIL defined in the input");
@@ -308,10 +325,11 @@ struct Importer {
       r.finish();
     }
     // Trim coils named nowhere are defined but unused.
+    std::set<std::string> coil_names;
+    for (const auto& t : trims) coil_names.insert(upper(t["name"].get<std::string>()));
     for (const Command& c : cmds)
-      if (c.keyword == "TRIMCOIL" && !c.label.empty()) {
-        bool used = false;
-        for (const auto& t : trims) used = used || t["name"] == c.label;
+      if (c.keyword == "TRIMCOIL" && !c.label.empty() && (!last_run || c.seq < last_run->seq)) {
+        const bool used = coil_names.count(upper(c.label)) > 0;
         if (!used && by_label[upper(c.label)] == &c)
           note(c.line, "TRIMCOIL " + c.label + " is in no CYCLOTRON's TRIMCOIL list: not imported");
       }
@@ -352,6 +370,7 @@ struct Importer {
         mass_MeV = mass * 1000;
       }
       m["particle"] = particle;
+      lines_of["/particle"] = beam->line;
       double E = 0;
       if (auto g = r.number("GAMMA")) {
         if (!(*g > 1)) throw r.error(*beam->find("GAMMA"), "must be > 1, got " + num(*g));
@@ -392,7 +411,7 @@ struct Importer {
     }
     for (const Command& c : cmds)
       if ((c.keyword == "RFCAVITY" || c.keyword == "PROBE" || c.keyword == "CYCLOTRON") && !c.label.empty() &&
-          !in_line.count(&c))
+          !in_line.count(&c) && (!last_run || c.seq < last_run->seq))
         note(c.line, c.keyword_spelled + " " + c.label + " is not in the tracked LINE " + line.label + ": not imported");
     if (!cavities.empty()) m["cavities"] = cavities;
     if (!trims.empty()) m["trimcoils"] = trims;
@@ -406,8 +425,8 @@ struct Importer {
       r.take("LINE");
       r.take("BEAM");
       const double spt = r.number("STEPSPERTURN", 720);
-      if (spt != std::floor(spt) || spt < 16 || spt > 1e7)
-        throw r.error(*track->find("STEPSPERTURN"), "must be a whole number in 16..1e7, got " + num(spt));
+      if (!(spt == std::floor(spt) && spt >= 1 && spt <= 1e7))
+        throw r.error(*track->find("STEPSPERTURN"), "must be a whole number in 1..1e7, got " + num(spt));
       tracking["steps_per_turn"] = static_cast<int>(spt);
       double maxsteps = 10;
       if (const Attribute* a = r.take("MAXSTEPS")) {
@@ -418,7 +437,10 @@ struct Importer {
       }
       if (!(maxsteps >= 0)) throw error(track->line, "TRACK MAXSTEPS must be >= 0, got " + num(maxsteps));
       const double turns = std::floor(maxsteps / spt);
-      if (turns >= 1) tracking["turns"] = static_cast<int>(std::min(turns, 1e6));
+      if (turns > 1e6)
+        throw r.error(*track->find("MAXSTEPS"), num(maxsteps) + " steps are " + num(turns) +
+                                                    " turns of " + num(spt) + ": turnfit tracks at most 1e6 turns");
+      if (turns >= 1) tracking["turns"] = static_cast<int>(turns);
       if (turns * spt != maxsteps)
         note(track->line, "TRACK MAXSTEPS = " + num(maxsteps) + " is not a whole number of turns of " + num(spt) +
                               " steps: " + num(turns) + " whole turns are imported");
@@ -434,6 +456,7 @@ struct Importer {
       r.finish();
     }
     if (!tracking.empty()) m["tracking"] = tracking;
+    if (track) lines_of["/tracking"] = track->line;
     if (!runs.empty()) {
       const Command& run = *runs.back();
       Attrs r(run, in, notes);
@@ -525,6 +548,7 @@ struct Importer {
     t["type"] = tt;
     t["rmin_mm"] = r.number("RMIN", 0.0);
     t["rmax_mm"] = r.required("RMAX");
+    lines_of["/trimcoils/" + std::to_string(out.size())] = c.line;
     const double bmax = r.number("BMAX", 0.0);
     // OPAL adds PSI-BFIELD and PSI-PHASE fields to its sign-flipped Bz and subtracts the
     // mirrored shape (physics.md): BMAX is -bmax_T for the first two, +bmax_T for the third.
@@ -539,7 +563,21 @@ struct Importer {
       if (const Attribute* a = r.take("COEFDENOM")) den_c = in.numbers(*a);
       if (num_c.empty()) num_c = {1.0};
       t["coefnum"] = num_c;
-      if (!den_c.empty()) t["coefdenom"] = den_c;
+      if (!den_c.empty()) {
+        // f/g must be finite on the coil: a denominator with a root there gives an infinite field.
+        const double lo = t["rmin_mm"].get<double>() * 1e-3, hi = t["rmax_mm"].get<double>() * 1e-3;
+        double prev = 0;
+        for (int k = 0; k <= 2000; ++k) {
+          const double x = lo + (hi - lo) * k / 2000;
+          double g = 0;
+          for (size_t j = den_c.size(); j-- > 0;) g = g * x + den_c[j];
+          if (g == 0 || !std::isfinite(g) || (k > 0 && (g > 0) != (prev > 0)))
+            throw r.error(*c.find("COEFDENOM"), "the denominator is 0 within RMIN..RMAX (near r = " + num(x * 1e3) +
+                                                    " mm): the coil's field would be infinite there");
+          prev = g;
+        }
+        t["coefdenom"] = den_c;
+      }
       r.explain("SLPTC", "used only by PSI-BFIELD-MIRRORED");
       // An azimuthal factor turnfit can hold only when it is a constant.
       double phi_factor = 1;
@@ -624,6 +662,7 @@ struct Importer {
     k["pdis_mm"] = r.number("PDIS", 0.0);
     k["rmin_mm"] = r.number("RMIN", 0.0);
     k["rmax_mm"] = r.required("RMAX");
+    lines_of["/cavities/" + std::to_string(out.size())] = c.line;
     k["gap_width_mm"] = r.number("GAPWIDTH", 0.0);
     r.explain("FAST", "OPAL's interpolation shortcut for field maps: no effect on a single gap");
     r.finish();
@@ -647,6 +686,7 @@ struct Importer {
     p["s_min_mm"] = tidy(x0 * cs + y0 * sn);
     p["s_max_mm"] = tidy(x1 * cs + y1 * sn);
     p["step_mm"] = r.number("STEP", 1.0);
+    lines_of["/probes/" + std::to_string(out.size())] = c.line;
     if (!(p["step_mm"].get<double>() > 0)) throw r.error(*c.find("STEP"), "must be > 0");
     r.explain("WIDTH", "not used by OPAL");
     r.explain("OUTFN", "OPAL's output file name");
@@ -798,6 +838,23 @@ OpalImport import_opal(const std::string& text, const std::string& name, const s
   if (out.machine.is_null()) {
     rebase_paths(m, "", out_dir);
     out.machine = m;
+  }
+  // The machine must load; a refusal names the input line its element came from.
+  if (check_files) {
+    try {
+      machine_from_json(out.machine, name + " (imported machine)", out_dir);
+    } catch (const Error& e) {
+      std::string msg = e.what();
+      const std::string head = name + " (imported machine): ";
+      if (msg.rfind(head, 0) == 0) msg = msg.substr(head.size());
+      long line = 0;
+      std::string best;
+      for (const auto& [ptr, l] : imp.lines_of)
+        if (msg.rfind(ptr, 0) == 0 && (msg.size() == ptr.size() || msg[ptr.size()] == '/' || msg[ptr.size()] == ':') &&
+            ptr.size() > best.size())
+          best = ptr, line = l;
+      throw data_error(name, line, "the machine it describes is not valid: " + msg);
+    }
   }
   out.notes = imp.notes;
   std::stable_sort(out.notes.begin(), out.notes.end(), [](const Note& a, const Note& b) { return a.line < b.line; });

@@ -101,7 +101,9 @@ struct Definition {
   double value = 0;  // immediate definitions
 };
 constexpr long kEnd = std::numeric_limits<long>::max();
-constexpr size_t kAttributes = 10000;  // attributes of one command (OPAL's have a few dozen)  // "after the whole input": deferred values
+constexpr size_t kAttributes = 10000;  // attributes of one command (OPAL's have a few dozen)
+constexpr size_t kTokens = 2000000;    // tokens of one input (cyclotron2.in has 700)
+constexpr int kNesting = 600;          // nested sub-expressions and deferred definitions, together  // "after the whole input": deferred values
 
 }  // namespace
 
@@ -115,6 +117,25 @@ struct Input::Impl {
   std::map<std::string, std::vector<Definition>> vars;  // each name's definitions in input order
   long seq = 0;                                          // statements read so far
   mutable std::vector<std::string> evaluating;           // for circular definitions
+  mutable int nesting = 0;                               // Nest: the evaluation's depth
+  mutable std::map<std::pair<const Definition*, long>, double> memo;  // deferred values by context
+  long run_at = kEnd;                                    // where ':=' values are taken (set_evaluation_point)
+  bool stopped = false;                                  // STOP or QUIT read: nothing after it is
+
+  // One level of nested evaluation; refused past kNesting (the stack is finite).
+  struct Nest {
+    const Impl& in;
+    Nest(const Impl& i, long line) : in(i) {
+      if (in.nesting >= kNesting) throw in.error(line, "expression or definitions nested too deeply");
+      ++in.nesting;
+    }
+    ~Nest() { --in.nesting; }
+    Nest(const Nest&) = delete;
+    Nest& operator=(const Nest&) = delete;
+  };
+
+  // Where an attribute's value is taken: where it stands, or for ':=' at the evaluation point.
+  long when(const Attribute& a) const { return a.seq == kEnd ? run_at : a.seq; }
 
   // The definition of `key` in force at statement `at`, or nullptr.
   const Definition* definition(const std::string& key, long at) const {
@@ -132,6 +153,8 @@ struct Input::Impl {
   void lex(const std::string& text) {
     long line = 1;
     size_t i = 0;
+    int braces = 0;           // IF blocks (and arrays) open here
+    bool at_statement = true;  // the next token starts a statement
     const size_t n = text.size();
     while (i < n) {
       const char c = text[i];
@@ -159,8 +182,7 @@ struct Input::Impl {
         i += 2;
         continue;
       }
-      if (toks.size() >= static_cast<size_t>(limits::kLines))
-        throw error(line, "more than " + std::to_string(limits::kLines) + " tokens");
+      if (toks.size() >= kTokens) throw error(line, "more than " + std::to_string(kTokens) + " tokens");
       Token t;
       t.line = line;
       if (is_name_start(c)) {
@@ -218,9 +240,36 @@ struct Input::Impl {
           ++i;
         }
       }
+      const bool stop = at_statement && braces == 0 && t.kind == Kind::name &&
+                        (upper(t.text) == "STOP" || upper(t.text) == "QUIT");
+      if (t.kind == Kind::punct && t.text == "{") ++braces;
+      if (t.kind == Kind::punct && t.text == "}") --braces;
+      at_statement = t.kind == Kind::punct && (t.text == ";" || t.text == "}" || t.text == "{");
       toks.push_back(std::move(t));
+      if (stop) {
+        // OPAL reads no further than a STOP at the top level: whatever follows is not lexed
+        // (an unclosed string there is no error), only counted for the note.
+        size_t j = i;
+        while (j < n && (text[j] == ' ' || text[j] == '\t' || text[j] == '\r')) ++j;
+        if (j < n && text[j] == ';') {
+          toks.push_back(Token{Kind::punct, ";", line});
+          // Lines after the STOP's that hold anything, for the note.
+          bool content = false;
+          for (size_t k = text.find('\n', j); k < n; ++k) {
+            if (text[k] == '\n') {
+              unread_ += content;
+              content = false;
+            } else if (!std::isspace(static_cast<unsigned char>(text[k]))) {
+              content = true;
+            }
+          }
+          unread_ += content;
+          return;
+        }
+      }
     }
   }
+  long unread_ = 0;  // lines with text after a top-level STOP
 
   // ---- statements ----
   bool at_end() const { return pos >= toks.size(); }
@@ -277,6 +326,7 @@ struct Input::Impl {
       if (peek_name("ELSE")) throw error(peek().line, "'ELSE' without an IF");
       Tokens st = statement_tokens();
       if (take && !st.empty()) statement(st);
+      if (stopped) return;
     }
   }
 
@@ -310,6 +360,7 @@ struct Input::Impl {
     }
     expect("{", "opening the IF block");
     parse_block(take && value, depth + 1);
+    if (stopped) return;
     expect("}", "closing the IF block");
     if (peek_name("ELSE")) {
       ++pos;
@@ -319,6 +370,7 @@ struct Input::Impl {
       }
       expect("{", "opening the ELSE block");
       parse_block(take && !value, depth + 1);
+      if (stopped) return;
       expect("}", "closing the ELSE block");
     }
   }
@@ -408,6 +460,14 @@ struct Input::Impl {
     c.keyword_spelled = st[k].text;
     c.keyword = upper(st[k].text);
     ++k;
+    if ((c.keyword == "STOP" || c.keyword == "QUIT") && c.label.empty()) {
+      // OPAL stops reading here: what follows is never parsed or evaluated.
+      stopped = true;
+      const long rest = unread_;
+      if (rest > 0)
+        notes.push_back({c.line, c.keyword_spelled + ": OPAL reads no further (" + std::to_string(rest) +
+                                     " more line" + (rest == 1 ? "" : "s") + " not read)", true});
+    }
     if (c.keyword == "LINE") {
       if (k >= st.size() || st[k].kind != Kind::punct || (st[k].text != "=" && st[k].text != ":="))
         throw error(st[k - 1].line, "expected '= (' after LINE");
@@ -468,7 +528,6 @@ struct Input::Impl {
     long at;  // the statement whose definitions are in force
     size_t i = 0;
     long line;
-    int depth = 0;
 
     bool punct(const std::string& p) const {
       return i < t.size() && t[i].kind == Kind::punct && t[i].text == p;
@@ -487,14 +546,13 @@ struct Input::Impl {
     }
 
     double expr() {
-      if (++depth > 200) throw bad("expression nested too deeply");
+      Nest nest(in, i < t.size() ? t[i].line : line);
       double v = and_expr();
       while (punct("||")) {
         ++i;
         const double r = and_expr();
         v = (v != 0 || r != 0) ? 1 : 0;
       }
-      --depth;
       return v;
     }
     double and_expr() {
@@ -543,10 +601,8 @@ struct Input::Impl {
       return v;
     }
     double unary() {
-      if (++depth > 200) throw bad("expression nested too deeply");
-      const double v = unary_inner();
-      --depth;
-      return v;
+      Nest nest(in, i < t.size() ? t[i].line : line);
+      return unary_inner();
     }
     double unary_inner() {
       if (punct("-")) {
@@ -691,7 +747,11 @@ struct Input::Impl {
         for (size_t m = j; m < evaluating.size(); ++m) chain += definition(evaluating[m], at)->spelled + " -> ";
         throw error(tok.line, "circular definition of " + show(tok) + ": " + chain + tok.text);
       }
-    if (evaluating.size() > 1000) throw error(tok.line, "definitions nested too deeply at " + show(tok));
+    // A deferred value depends only on its definition and the definitions in force where it
+    // is used: remembered, so definitions built on each other twice over stay linear.
+    auto hit = memo.find({d, at});
+    if (hit != memo.end()) return hit->second;
+    Nest nest(*this, tok.line);
     evaluating.push_back(up);
     double value = 0;
     try {
@@ -701,6 +761,7 @@ struct Input::Impl {
       throw;
     }
     evaluating.pop_back();
+    memo[{d, at}] = value;
     return value;
   }
 
@@ -726,7 +787,7 @@ Input::Input(const std::string& text, const std::string& name, double opal_versi
   impl_->version = opal_version;
   impl_->lex(text);
   impl_->parse_block(true, 0);
-  if (!impl_->at_end()) throw impl_->error(impl_->peek().line, "unbalanced " + show(impl_->peek()));
+  if (!impl_->stopped && !impl_->at_end()) throw impl_->error(impl_->peek().line, "unbalanced " + show(impl_->peek()));
 }
 Input::~Input() = default;
 Input::Input(Input&&) noexcept = default;
@@ -738,7 +799,7 @@ const std::string& Input::name() const { return impl_->name; }
 
 double Input::number(const Attribute& a) const {
   if (a.value.empty()) throw impl_->error(a.line, "attribute " + quote(a.spelled) + " needs a number");
-  return impl_->eval_tokens(a.value, a.line, a.seq);
+  return impl_->eval_tokens(a.value, a.line, impl_->when(a));
 }
 
 std::string Input::string(const Attribute& a) const {
@@ -746,7 +807,7 @@ std::string Input::string(const Attribute& a) const {
     const Token& t = a.value[0];
     if (t.kind == Kind::string) return t.text;
     if (t.kind == Kind::name) {
-      const Definition* d = impl_->definition(upper(t.text), a.seq);
+      const Definition* d = impl_->definition(upper(t.text), impl_->when(a));
       if (d && d->type == "STRING") return d->expr[0].text;
       return upper(t.text);  // OPAL reads an unquoted word upper-cased
     }
@@ -757,7 +818,7 @@ std::string Input::string(const Attribute& a) const {
 
 bool Input::boolean(const Attribute& a) const {
   if (a.value.empty()) return true;
-  return impl_->eval_bool_tokens(a.value, a.line, a.seq);
+  return impl_->eval_bool_tokens(a.value, a.line, impl_->when(a));
 }
 
 std::vector<double> Input::numbers(const Attribute& a) const {
@@ -776,14 +837,14 @@ std::vector<double> Input::numbers(const Attribute& a) const {
       if (t.text == ")" || t.text == "}") --depth;
       if (t.text == "," && depth == 0) {
         if (cur.empty()) throw impl_->error(t.line, "empty element before " + show(t) + " in " + quote(a.spelled));
-        out.push_back(impl_->eval_tokens(cur, t.line, a.seq));
+        out.push_back(impl_->eval_tokens(cur, t.line, impl_->when(a)));
         cur.clear();
         continue;
       }
     }
     cur.push_back(t);
   }
-  if (!cur.empty()) out.push_back(impl_->eval_tokens(cur, cur.front().line, a.seq));
+  if (!cur.empty()) out.push_back(impl_->eval_tokens(cur, cur.front().line, impl_->when(a)));
   else if (!out.empty()) throw impl_->error(v.back().line, "empty element at the end of " + quote(a.spelled));
   return out;
 }
@@ -821,8 +882,10 @@ double Input::variable(const std::string& n, long line) const {
   t.kind = Kind::name;
   t.text = n;
   t.line = line;
-  return impl_->value_of(t, kEnd);
+  return impl_->value_of(t, impl_->run_at);
 }
+
+void Input::set_evaluation_point(long seq) { impl_->run_at = seq; }
 
 bool Input::has_variable(const std::string& n) const { return impl_->vars.count(upper(n)) > 0; }
 

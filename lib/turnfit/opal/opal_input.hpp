@@ -86,6 +86,9 @@ class Input {
   double variable(const std::string& name, long line) const;
   /// Whether NAME (any case) is a user-defined variable.
   bool has_variable(const std::string& name) const;
+  /// Where `:=` values are taken: the definitions before statement `seq` (a RUN: OPAL
+  /// evaluates deferred expressions when it runs); by default after the whole input.
+  void set_evaluation_point(long seq);
 
  private:
   struct Impl;
