@@ -155,10 +155,13 @@ std::string export_opal(const Machine& m, const std::string& out_dir, const std:
     map = path_for(m.field.map, out_dir);
   }
   os << ring << ": CYCLOTRON, TYPE = \"RING\", FMAPFN = " << quoted(map, mname);
-  // OPAL's SYMMETRY has no default: a machine that takes it from the map gets the map's.
-  const int symmetry = m.field.symmetry > 0
-                           ? m.field.symmetry
-                           : read_field_map(m.field.map, parse_map_format(m.field.format), 0).grid().symmetry;
+  // OPAL's SYMMETRY has no default: a machine that takes it from the map gets the map's. OPAL
+  // 2022.1 starts a RING map at azimuth 0 whatever its header says (physics.md).
+  const PolarGrid grid = read_field_map(m.field.map, parse_map_format(m.field.format), m.field.symmetry).grid();
+  const int symmetry = m.field.symmetry > 0 ? m.field.symmetry : grid.symmetry;
+  if (grid.theta_min_deg != 0)
+    warnings.push_back("the map starts at azimuth " + num(grid.theta_min_deg) +
+                       " deg; OPAL 2022.1 starts every RING map at 0, so OPAL's field is turned by that much");
   os << ", SYMMETRY = " << symmetry;
   if (m.field.scale != 1) os << ", BSCALE = " << num(m.field.scale);
   os << ",\n    CYHARMON = " << m.rf.harmonic << ", RFFREQ = " << num(m.rf.frequency_MHz) << ",\n    RINIT = "

@@ -7,6 +7,7 @@
 #include <map>
 #include <set>
 
+#include "turnfit/field/map_io.hpp"
 #include "turnfit/io/error.hpp"
 #include "turnfit/io/json.hpp"
 #include "turnfit/io/limits.hpp"
@@ -271,6 +272,14 @@ struct Importer {
       json field = json::object();
       field["map"] = existing_file(r, *fm, "field map");
       field["format"] = "psi-ring";
+      if (check_files) {
+        // OPAL 2022.1 takes a RING map as starting at azimuth 0 whatever its header says
+        // (physics.md: theta_map = fmod(theta, 45)); turnfit places it where the header says.
+        const double th0 = read_field_map(field["map"].get<std::string>(), MapFormat::psi_ring).grid().theta_min_deg;
+        if (th0 != 0)
+          note(fm->line, r.what() + " FMAPFN: the map starts at azimuth " + num(th0) + " deg, which OPAL 2022.1 "
+                         "ignores (it starts every RING map at 0) and turnfit does not: the two track differently", false);
+      }
       if (auto s = r.number("SYMMETRY")) {
         if (!(*s == std::floor(*s) && *s >= 1 && *s <= 360))
           throw r.error(*r.take("SYMMETRY"), "must be a whole number in 1..360, got " + num(*s));
