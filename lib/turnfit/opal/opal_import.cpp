@@ -142,7 +142,7 @@ struct Importer {
     if (last_run) in.set_evaluation_point(last_run->seq);
     bool after_run = false;
     for (const Command& c : cmds) {
-      if (after_run) {
+      if (after_run && c.keyword != "ENDTRACK" && c.keyword != "STOP" && c.keyword != "QUIT") {
         note(c.line, c.keyword_spelled + " after the RUN that is imported (line " + std::to_string(last_run->line) +
                          "): not part of that run");
         continue;
