@@ -468,3 +468,40 @@ TEST_CASE("opal export: names cannot break the input (control characters in note
   CHECK(bare.machine["cavities"][0]["name"] == "real_");
   CHECK(bare.machine["cavities"][1]["name"] == "REAL__2");
 }
+
+TEST_CASE("opal input: STOP inside a taken IF, labelled, or before a comment ends the input too", "[opal]") {
+  for (const std::string& text : {std::string("REAL r = 1;\nIF (TRUE) { STOP; r = 9; }\nREAL z = 1/0;\n"),
+                                  std::string("REAL r = 1;\nS: STOP;\nREAL z = 1/0;\n"),
+                                  std::string("REAL r = 1;\nSTOP // the end\n;\n$ \"not OPAL at all\n")}) {
+    INFO(text);
+    std::string msg;
+    CHECK(test::error_code([&] { opal::Input in(text, "t.in", 1); CHECK(in.variable("r", 1) == 1); }, &msg) == 0);
+    CHECK(msg.empty());
+  }
+  // A STOP in a branch not taken is not read.
+  opal::Input in("REAL r = 1;\nIF (FALSE) { STOP; } ELSE { r = 2; }\nr = r + 1;\n", "t.in", 1);
+  CHECK(in.variable("r", 1) == 3);
+}
+
+TEST_CASE("opal import: a denominator's double root is refused, a refusal names the line its value came from",
+          "[opal]") {
+  // g(r) = (r - 2.0005)^2 touches 0 between samples without changing sign.
+  const std::string cyc =
+      "R: CYCLOTRON, TYPE = \"RING\", FMAPFN = \"m.dat\", SYMMETRY = 8, CYHARMON = 6, RFFREQ = 50, RINIT = 2000,"
+      " PHIINIT = 0, TRIMCOIL = T;\nL: LINE = (R);\n";
+  std::string msg;
+  CHECK(test::error_code([&] {
+          import_opal("T: TRIMCOIL, TYPE = \"PSI-BFIELD\", RMIN = 1000, RMAX = 3000, COEFDENOM = {4.00200025, -4.001, 1};\n" +
+                          cyc + "B: BEAM, PARTICLE = PROTON, PC = 0.4;\n",
+                      "t.in", "", "", kDefaultOpalVersion, false);
+        }, &msg) == 65);
+  CHECK(msg.find("t.in:1: T: TRIMCOIL COEFDENOM: the denominator is 0 within RMIN..RMAX (near r = 2000.5") !=
+        std::string::npos);
+  // An energy that rounds to 0 comes from the BEAM (line 4), not the CYCLOTRON.
+  const OpalImport r = import_opal("T: TRIMCOIL, TYPE = \"PSI-BFIELD\", RMAX = 3000;\n" + cyc +
+                                       "B: BEAM, PARTICLE = PROTON, PC = 1e-12;\n",
+                                   "t.in", "", "", kDefaultOpalVersion, false);
+  CHECK(test::error_code([&] { validate_import(r, "t.in", ""); }, &msg) == 65);
+  CHECK(msg.find("t.in:4: the machine it describes is not valid: /injection/energy_MeV: must be > 0") !=
+        std::string::npos);
+}

@@ -16,6 +16,20 @@ namespace {
 
 namespace fs = std::filesystem;
 
+// A path as the file system resolves it (symbolic links followed), for comparing outputs with inputs.
+std::string canonical_path(const std::string& p) {
+  std::error_code ec;
+  const fs::path c = fs::weakly_canonical(fs::absolute(p), ec);
+  return ec ? fs::absolute(p).lexically_normal().string() : c.string();  // a pipe's /dev/stdout has no path
+}
+
+// Whether an output path is a regular file (or not there yet): not a device, FIFO or folder.
+bool regular_or_new(const std::string& p) {
+  std::error_code ec;
+  const auto st = fs::status(p, ec);
+  return ec || !fs::exists(st) || fs::is_regular_file(st);
+}
+
 // The folder a file is written to or read from ("" for stdin/stdout: the current folder).
 std::string folder_of(const std::string& path) {
   if (path.empty() || path == "-") return {};
@@ -86,6 +100,19 @@ int run_import_opal(const ImportOpalOptions& o) {
     throw data_error(in.name, first_unexplained->line,
                      first_unexplained->text + " (--strict; " + std::to_string(unexplained) + " line" +
                          (unexplained == 1 ? "" : "s") + " not understood in all)");
+  validate_import(r, in.name, folder_of(o.common.output));
+  // The machine must not land on a file it or the import reads (the input, its map, ...).
+  if (o.common.output != "-") {
+    const std::string out = canonical_path(o.common.output);
+    std::vector<std::string> reads;
+    if (o.input != "-") reads.push_back(o.input);
+    const Machine mm = machine_from_json(r.machine, in.name, folder_of(o.common.output));
+    reads.push_back(mm.field.map);
+    for (const auto& c : mm.cavities) reads.push_back(c.profile);
+    for (const auto& p : reads)
+      if (!p.empty() && canonical_path(p) == out)
+        throw usage_error("-o " + quote(o.common.output) + " is a file the import reads: it would be overwritten");
+  }
   write_output(o.common.output, json_text(in_reading_order(r.machine), 1) + "\n");
   return 0;
 }
@@ -114,7 +141,11 @@ int run_export_opal(const ExportOpalCliOptions& o) {
   Machine m = load_machine(o.machine);
   if (!o.sets.empty()) apply_sets(m, o.sets);
   if (!o.dvars.empty()) apply_dvars_file(m, o.dvars);
-  const bool to_file = o.common.output != "-";
+  const bool to_file = o.common.output != "-" && regular_or_new(o.common.output);
+  for (const auto& [opt, f] : {std::pair<const char*, const std::string&>{"--map-out", o.files.map_out},
+                               {"--dist-out", o.files.dist_out}})
+    if (!f.empty() && !regular_or_new(f))
+      throw usage_error(std::string(opt) + " " + quote(f) + " must be a regular file (OPAL reads it by name)");
   const std::string out_dir = folder_of(o.common.output);
   // The distribution: as asked, else beside a file output (<stem>-dist.dat), else named only.
   std::string dist_out = o.files.dist_out;
@@ -122,9 +153,10 @@ int run_export_opal(const ExportOpalCliOptions& o) {
     dist_out = (fs::path(o.common.output).parent_path() / (fs::path(o.common.output).stem().string() + "-dist.dat")).string();
   // No output may land on another output or on a file the machine reads (a measured map
   // overwritten by its 9-digit copy would be lost without a word).
-  auto canon = [](const std::string& p) { return fs::weakly_canonical(fs::absolute(p)).string(); };
+  auto canon = canonical_path;
   std::vector<std::pair<std::string, std::string>> outs;
   if (to_file) outs.push_back({"-o", o.common.output});
+  else if (o.common.output == "-" && fs::exists("/dev/stdout")) outs.push_back({"-o", "/dev/stdout"});  // where stdout goes
   if (!o.files.map_out.empty()) outs.push_back({"--map-out", o.files.map_out});
   if (!dist_out.empty()) outs.push_back({o.files.dist_out.empty() ? "the distribution file" : "--dist-out", dist_out});
   std::vector<std::string> inputs = {m.field.map};
@@ -153,18 +185,23 @@ int run_export_opal(const ExportOpalCliOptions& o) {
     warnings.push_back("the input reads its particle from 'dist1.dat' in the folder OPAL runs in: two lines, '1' and "
                        "'0 0 0 0 0 0' (or use --dist-out)");
   const std::string text = export_opal(m, out_dir, map_file, dist_file, warnings);
-  // Every output is created (as a temporary) before any is committed, so a refusal (an
-  // unwritable folder) leaves none of them behind.
+  // Every file output is created (as a temporary) before any is committed, so a refusal (an
+  // unwritable folder) leaves none of them behind; stdout or a device gets the input last,
+  // after the files it names are in place.
   std::vector<std::pair<std::unique_ptr<OutputFile>, std::string>> files;
+  std::unique_ptr<OutputFile> main_out;
+  if (to_file) main_out = std::make_unique<OutputFile>(o.common.output);
   if (!o.files.map_out.empty()) {
     std::ostringstream ms;
     write_psi_ring(ms, read_field_map(m.field.map, parse_map_format(m.field.format), m.field.symmetry));
     files.emplace_back(std::make_unique<OutputFile>(o.files.map_out), ms.str());
   }
   if (!dist_out.empty()) files.emplace_back(std::make_unique<OutputFile>(dist_out), "1\n0.0 0.0 0.0 0.0 0.0 0.0\n");
-  files.emplace_back(std::make_unique<OutputFile>(o.common.output), text);
   for (auto& [f, content] : files) f->stream() << content;
   for (auto& [f, content] : files) f->commit();
+  if (!main_out) main_out = std::make_unique<OutputFile>(o.common.output);
+  main_out->stream() << text;
+  main_out->commit();
   for (const auto& w : warnings) cli::warn(o.common, "note: " + w);
   return 0;
 }

@@ -379,7 +379,7 @@ struct Importer {
         mass_MeV = mass * 1000;
       }
       m["particle"] = particle;
-      lines_of["/particle"] = beam->line;
+      lines_of["/particle"] = lines_of["/injection/energy_MeV"] = beam->line;
       double E = 0;
       if (auto g = r.number("GAMMA")) {
         if (!(*g > 1)) throw r.error(*beam->find("GAMMA"), "must be > 1, got " + num(*g));
@@ -573,17 +573,39 @@ struct Importer {
       if (num_c.empty()) num_c = {1.0};
       t["coefnum"] = num_c;
       if (!den_c.empty()) {
-        // f/g must be finite on the coil: a denominator with a root there gives an infinite field.
+        // f/g must be finite on the coil: a denominator with a root there (a sign change, or a
+        // double root where |g| only touches 0) gives an infinite field.
         const double lo = t["rmin_mm"].get<double>() * 1e-3, hi = t["rmax_mm"].get<double>() * 1e-3;
-        double prev = 0;
-        for (int k = 0; k <= 2000; ++k) {
-          const double x = lo + (hi - lo) * k / 2000;
+        auto g_at = [&](double x) {
           double g = 0;
           for (size_t j = den_c.size(); j-- > 0;) g = g * x + den_c[j];
-          if (g == 0 || !std::isfinite(g) || (k > 0 && (g > 0) != (prev > 0)))
-            throw r.error(*c.find("COEFDENOM"), "the denominator is 0 within RMIN..RMAX (near r = " + num(x * 1e3) +
-                                                    " mm): the coil's field would be infinite there");
-          prev = g;
+          return g;
+        };
+        constexpr int kSamples = 2000;
+        std::vector<double> g(kSamples + 1);
+        double gmax = 0;
+        for (int k = 0; k <= kSamples; ++k) {
+          g[k] = g_at(lo + (hi - lo) * k / kSamples);
+          gmax = std::max(gmax, std::fabs(g[k]));
+        }
+        auto refuse = [&](double x) {
+          throw r.error(*c.find("COEFDENOM"), "the denominator is 0 within RMIN..RMAX (near r = " + num(x * 1e3) +
+                                                  " mm): the coil's field would be infinite there");
+        };
+        for (int k = 0; k <= kSamples; ++k) {
+          const double x = lo + (hi - lo) * k / kSamples;
+          if (g[k] == 0 || !std::isfinite(g[k]) || (k > 0 && (g[k] > 0) != (g[k - 1] > 0))) refuse(x);
+          if (k > 0 && k < kSamples && std::fabs(g[k]) <= std::fabs(g[k - 1]) && std::fabs(g[k]) <= std::fabs(g[k + 1])) {
+            // A local minimum of |g|: golden-section search between the neighbouring samples.
+            double a = lo + (hi - lo) * (k - 1) / kSamples, b = lo + (hi - lo) * (k + 1) / kSamples;
+            const double gr = 0.5 * (std::sqrt(5.0) - 1);
+            for (int it = 0; it < 100 && b - a > 1e-15; ++it) {
+              const double p = b - gr * (b - a), q = a + gr * (b - a);
+              if (std::fabs(g_at(p)) < std::fabs(g_at(q))) b = q;
+              else a = p;
+            }
+            if (std::fabs(g_at(0.5 * (a + b))) <= 1e-12 * gmax) refuse(0.5 * (a + b));
+          }
         }
         t["coefdenom"] = den_c;
       }
@@ -831,6 +853,9 @@ OpalImport import_opal(const std::string& text, const std::string& name, const s
       rebase_paths(restored, in_dir, out_dir);
       out.machine = restored;
       out.from_annotation = changed.empty();
+      out.annotation_line = line;
+      for (const char* sec : {"particle", "field", "rf", "cavities", "trimcoils", "probes", "injection", "tracking"})
+        if (std::find(changed.begin(), changed.end(), sec) == changed.end()) out.restored.push_back(sec);
       imp.notes.push_back({line, changed.empty()
                                      ? "turnfit annotation: the commands are those turnfit-export-opal wrote, so the "
                                        "machine it records is restored (names, descriptions, effects, exact values)"
@@ -848,26 +873,33 @@ OpalImport import_opal(const std::string& text, const std::string& name, const s
     rebase_paths(m, "", out_dir);
     out.machine = m;
   }
-  // The machine must load; a refusal names the input line its element came from.
-  if (check_files) {
-    try {
-      machine_from_json(out.machine, name + " (imported machine)", out_dir);
-    } catch (const Error& e) {
-      std::string msg = e.what();
-      const std::string head = name + " (imported machine): ";
-      if (msg.rfind(head, 0) == 0) msg = msg.substr(head.size());
-      long line = 0;
-      std::string best;
-      for (const auto& [ptr, l] : imp.lines_of)
-        if (msg.rfind(ptr, 0) == 0 && (msg.size() == ptr.size() || msg[ptr.size()] == '/' || msg[ptr.size()] == ':') &&
-            ptr.size() > best.size())
-          best = ptr, line = l;
-      throw data_error(name, line, "the machine it describes is not valid: " + msg);
-    }
-  }
   out.notes = imp.notes;
+  out.lines = imp.lines_of;
   std::stable_sort(out.notes.begin(), out.notes.end(), [](const Note& a, const Note& b) { return a.line < b.line; });
   return out;
+}
+
+void validate_import(const OpalImport& r, const std::string& name, const std::string& out_dir) {
+  try {
+    machine_from_json(r.machine, name + " (imported machine)", out_dir);
+  } catch (const Error& e) {
+    // Named by the line the value came from: its command, or the annotation for what the
+    // annotation restored (and for what only the annotation carries: bunch, effects, ...).
+    std::string msg = e.what();
+    const std::string head = name + " (imported machine): ";
+    if (msg.rfind(head, 0) == 0) msg = msg.substr(head.size());
+    const std::string ptr = msg.substr(0, msg.find(':'));
+    const std::string section = ptr.size() > 1 ? ptr.substr(1, ptr.find('/', 1) - 1) : std::string();
+    long line = 0;
+    std::string best;
+    for (const auto& [p, l] : r.lines)
+      if (ptr.rfind(p, 0) == 0 && (ptr.size() == p.size() || ptr[p.size()] == '/') && p.size() > best.size())
+        best = p, line = l;
+    const bool restored = std::find(r.restored.begin(), r.restored.end(), section) != r.restored.end();
+    if (r.annotation_line && (restored || best.empty()))
+      throw data_error(name, r.annotation_line, "turnfit annotation: the machine it records is not valid: " + msg);
+    throw data_error(name, line, "the machine it describes is not valid: " + msg);
+  }
 }
 
 }  // namespace turnfit

@@ -100,10 +100,14 @@ struct Definition {
   bool deferred = false;
   double value = 0;  // immediate definitions
 };
-constexpr long kEnd = std::numeric_limits<long>::max();
+constexpr long kEnd = std::numeric_limits<long>::max();  // "after the whole input": deferred values
 constexpr size_t kAttributes = 10000;  // attributes of one command (OPAL's have a few dozen)
 constexpr size_t kTokens = 2000000;    // tokens of one input (cyclotron2.in has 700)
-constexpr int kNesting = 600;          // nested sub-expressions and deferred definitions, together  // "after the whole input": deferred values
+// Nested sub-expressions and deferred definitions, together (a definition costs 3: about 2 kB of
+// stack each, so 6 MB at most), and tokens evaluated in all (cyclotron2.in: 300; a deferred
+// definition is evaluated again wherever the definitions it sees differ).
+constexpr int kNesting = 3000;
+constexpr long kSteps = 5000000;
 
 }  // namespace
 
@@ -118,6 +122,7 @@ struct Input::Impl {
   long seq = 0;                                          // statements read so far
   mutable std::vector<std::string> evaluating;           // for circular definitions
   mutable int nesting = 0;                               // Nest: the evaluation's depth
+  mutable long steps = 0;                                // tokens evaluated (kSteps)
   mutable std::map<std::pair<const Definition*, long>, double> memo;  // deferred values by context
   long run_at = kEnd;                                    // where ':=' values are taken (set_evaluation_point)
   bool stopped = false;                                  // STOP or QUIT read: nothing after it is
@@ -250,8 +255,23 @@ struct Input::Impl {
         // OPAL reads no further than a STOP at the top level: whatever follows is not lexed
         // (an unclosed string there is no error), only counted for the note.
         size_t j = i;
-        while (j < n && (text[j] == ' ' || text[j] == '\t' || text[j] == '\r')) ++j;
+        long skipped_lines = 0;
+        for (;;) {  // blanks and comments before its ';'
+          if (j < n && std::isspace(static_cast<unsigned char>(text[j]))) {
+            skipped_lines += text[j++] == '\n';
+          } else if (j + 1 < n && text[j] == '/' && text[j + 1] == '/') {
+            while (j < n && text[j] != '\n') ++j;
+          } else if (j + 1 < n && text[j] == '/' && text[j + 1] == '*') {
+            const size_t e = text.find("*/", j + 2);
+            if (e == std::string::npos) break;
+            for (size_t k = j; k < e; ++k) skipped_lines += text[k] == '\n';
+            j = e + 2;
+          } else {
+            break;
+          }
+        }
         if (j < n && text[j] == ';') {
+          line += skipped_lines;
           toks.push_back(Token{Kind::punct, ";", line});
           // Lines after the STOP's that hold anything, for the note.
           bool content = false;
@@ -317,6 +337,7 @@ struct Input::Impl {
       }
       if (peek_name("IF")) {
         parse_if(take, depth);
+        if (stopped) return;
         continue;
       }
       if (peek_name("WHILE") || peek_name("MACRO")) {
@@ -460,7 +481,7 @@ struct Input::Impl {
     c.keyword_spelled = st[k].text;
     c.keyword = upper(st[k].text);
     ++k;
-    if ((c.keyword == "STOP" || c.keyword == "QUIT") && c.label.empty()) {
+    if (c.keyword == "STOP" || c.keyword == "QUIT") {
       // OPAL stops reading here: what follows is never parsed or evaluated.
       stopped = true;
       const long rest = unread_;
@@ -632,6 +653,9 @@ struct Input::Impl {
     }
     double primary() {
       if (i >= t.size()) unexpected("a number, a name or '('");
+      if (++in.steps > kSteps)
+        throw in.error(t[i].line, "evaluating the input takes more than " + std::to_string(kSteps) +
+                                      " steps (deferred definitions re-evaluated too often)");
       const Token& tok = t[i];
       if (tok.kind == Kind::number) {
         ++i;

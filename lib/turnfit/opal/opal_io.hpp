@@ -1,6 +1,7 @@
 // OPAL-cycl inputs to turnfit machines and back (turnfit-import-opal, turnfit-export-opal).
 #pragma once
 
+#include <map>
 #include <nlohmann/json.hpp>
 #include <string>
 #include <vector>
@@ -20,6 +21,9 @@ struct OpalImport {
   nlohmann::json machine;
   std::vector<opal::Note> notes;
   bool from_annotation = false;  ///< the turnfit annotation of an export restored the machine
+  std::map<std::string, long> lines;  ///< JSON pointer of the machine -> the input line it came from
+  long annotation_line = 0;           ///< first line of the annotation used (0: none)
+  std::vector<std::string> restored;  ///< sections the annotation restored
 };
 
 /// Reads OPAL-cycl input text. `name` is used in messages, `in_dir` resolves its file names
@@ -31,6 +35,10 @@ struct OpalImport {
 OpalImport import_opal(const std::string& text, const std::string& name, const std::string& in_dir,
                        const std::string& out_dir, double opal_version = kDefaultOpalVersion,
                        bool check_files = true);
+
+/// Checks that an import's machine loads (turnfit-machine(5)); a refusal is EX_DATAERR naming
+/// the input line the refused value came from (its command, or the annotation).
+void validate_import(const OpalImport& r, const std::string& name, const std::string& out_dir);
 
 /// Options of turnfit-export-opal.
 struct ExportOpalOptions {
