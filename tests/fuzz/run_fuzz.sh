@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # Runs every libFuzzer target of a TURNFIT_FUZZ build for SECONDS each (make -f Makefile.wrap fuzz).
 #   tests/fuzz/run_fuzz.sh BUILD_DIR SECONDS [FORMAT ...]
-# Each target starts from its seeds (seeds.txt; files over 64 kB are replayed by the suite but
-# left out here, they would slow every execution) and its regression inputs, and keeps what it
+# Each target starts from its seeds (seeds.txt) and its regression inputs (files over 64 kB of
+# either are replayed by the suite but left out here: they would slow every execution), and keeps what it
 # finds in BUILD_DIR/fuzz-corpus/FORMAT. A crash, leak, timeout (10 s) or memory blow-up
 # (2 GB) leaves its input in BUILD_DIR/fuzz-artifacts/FORMAT/ and fails the run: make it a
 # fixed bug and a file under tests/fuzz/regressions/FORMAT/. A line per target goes to stdout:
@@ -35,7 +35,9 @@ for f in "${formats[@]}"; do
     case "$path" in /*) ;; *) path="$root/$path" ;; esac
     [ -f "$path" ] && [ "$(stat -c %s "$path")" -le 65536 ] && cp "$path" "$corpus/seed-$(basename "$path")"
   done < <(grep -E '^[a-z_]+ ' "$here/seeds.txt")
-  [ -d "$here/regressions/$f" ] && cp "$here/regressions/$f"/* "$corpus/" 2>/dev/null
+  for path in "$here/regressions/$f"/*; do  # the same 64 kB cap: the suite replays the larger ones
+    [ -f "$path" ] && [ "$(stat -c %s "$path")" -le 65536 ] && cp "$path" "$corpus/"
+  done
   log="$build/fuzz-artifacts/$f.log"
   start=$(date +%s)
   "$exe" "$corpus" -max_total_time="$seconds" -timeout=10 -rss_limit_mb=2560 -malloc_limit_mb=2048 \
