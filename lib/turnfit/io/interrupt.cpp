@@ -34,14 +34,22 @@ void on_stop(int sig) {
   ::raise(sig);
 }
 
+// The signals that stop a tool (turnfit(1), SIGNALS), and the same as a set.
+constexpr int kStopSignals[] = {SIGINT, SIGTERM, SIGHUP};
+sigset_t stop_signals() {
+  sigset_t set;
+  sigemptyset(&set);
+  for (int sig : kStopSignals) sigaddset(&set, sig);
+  return set;
+}
+
 }  // namespace
 
 void install_stop_handlers() {
   struct sigaction sa {};
   sa.sa_handler = on_stop;
-  sigemptyset(&sa.sa_mask);
-  for (int sig : {SIGINT, SIGTERM, SIGHUP}) sigaddset(&sa.sa_mask, sig);  // one stop at a time
-  for (int sig : {SIGINT, SIGTERM, SIGHUP}) {
+  sa.sa_mask = stop_signals();  // one stop at a time
+  for (int sig : kStopSignals) {
     // A signal the caller ignores (nohup, a background job's SIGINT) stays ignored.
     struct sigaction old {};
     if (::sigaction(sig, nullptr, &old) == 0 && old.sa_handler == SIG_IGN) continue;
@@ -50,9 +58,7 @@ void install_stop_handlers() {
 }
 
 StopSignalsHeld::StopSignalsHeld() {
-  sigset_t stops;
-  sigemptyset(&stops);
-  for (int sig : {SIGINT, SIGTERM, SIGHUP}) sigaddset(&stops, sig);
+  const sigset_t stops = stop_signals();
   ::pthread_sigmask(SIG_BLOCK, &stops, &old_);
 }
 

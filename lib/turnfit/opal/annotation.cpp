@@ -2,6 +2,8 @@
 #include "turnfit/opal/annotation.hpp"
 
 #include <cstring>
+#include <filesystem>
+#include <functional>
 
 #include "turnfit/io/error.hpp"
 #include "turnfit/io/json.hpp"
@@ -12,17 +14,54 @@ namespace {
 
 using nlohmann::json;
 
+namespace fs = std::filesystem;
+
 const char* const kAnnotationFormat = "turnfit-opal-annotation/1";
-// The sections OPAL's commands describe; name and description come from the import itself.
-const char* const kSections[] = {"particle", "field", "rf", "cavities", "trimcoils", "probes", "injection", "tracking"};
+
+// A folder as an absolute path ("" is the current folder).
+fs::path folder(const std::string& d) { return fs::absolute(d.empty() ? fs::path(".") : fs::path(d)).lexically_normal(); }
+
+// Paths in a machine document: apply f to each (field map, profiles, coil tables, bunch file).
+void for_each_path(json& m, const std::function<void(json&)>& f) {
+  if (m.contains("field") && m["field"].contains("map")) f(m["field"]["map"]);
+  for (const char* list : {"cavities", "trimcoils"}) {
+    if (!m.contains(list) || !m[list].is_array()) continue;
+    for (auto& e : m[list])
+      for (const char* k : {"profile", "table"})
+        if (e.is_object() && e.contains(k) && e[k].is_string()) f(e[k]);
+  }
+  if (m.contains("bunch") && m["bunch"].is_object() && m["bunch"].contains("file") && m["bunch"]["file"].is_string())
+    f(m["bunch"]["file"]);
+}
 
 }  // namespace
+
+const std::vector<std::string>& opal_sections() {
+  static const std::vector<std::string> s = {"particle", "field",  "rf",        "cavities",
+                                             "trimcoils", "probes", "injection", "tracking"};
+  return s;
+}
+
+std::string relative_to(const std::string& path, const std::string& dir) {
+  const fs::path abs = fs::absolute(fs::path(path)).lexically_normal();
+  const fs::path rel = abs.lexically_relative(folder(dir));
+  return rel.empty() ? abs.string() : rel.string();
+}
+
+void rebase_paths(json& m, const std::string& from_dir, const std::string& to_dir) {
+  const fs::path from = folder(from_dir);
+  for_each_path(m, [&](json& p) {
+    const std::string s = p.get<std::string>();
+    if (s.empty()) return;
+    p = relative_to((fs::path(s).is_absolute() ? fs::path(s) : from / s).string(), to_dir);
+  });
+}
 
 std::string write_annotation(const json& opal_part, const json& machine) {
   json a = json::object();
   a["format"] = kAnnotationFormat;
   json o = json::object();
-  for (const char* s : kSections)
+  for (const auto& s : opal_sections())
     if (opal_part.contains(s)) o[s] = opal_part[s];
   a["opal"] = o;
   a["machine"] = machine;
@@ -59,7 +98,7 @@ std::optional<Annotation> read_annotation(const std::string& text, const std::st
 
 std::vector<std::string> changed_sections(const json& recorded, const json& now) {
   std::vector<std::string> out;
-  for (const char* s : kSections) {
+  for (const auto& s : opal_sections()) {
     const bool a = recorded.contains(s), b = now.contains(s);
     if (a != b || (a && recorded[s] != now[s])) out.push_back(s);
   }

@@ -9,6 +9,7 @@
 #include "turnfit/io/json.hpp"
 #include "turnfit/io/output.hpp"
 #include "turnfit/io/text.hpp"
+#include "turnfit/opal/annotation.hpp"
 #include "turnfit/opal/opal_io.hpp"
 
 namespace turnfit {
@@ -28,6 +29,15 @@ bool regular_or_new(const std::string& p) {
   std::error_code ec;
   const auto st = fs::status(p, ec);
   return ec || !fs::exists(st) || fs::is_regular_file(st);
+}
+
+// The files a machine reads (its map, profiles, coil tables, bunch file), which no output may replace.
+std::vector<std::string> files_read(const Machine& m) {
+  std::vector<std::string> out = {m.field.map};
+  for (const auto& c : m.cavities) out.push_back(c.profile);
+  for (const auto& t : m.trimcoils) out.push_back(t.table);
+  if (m.bunch) out.push_back(m.bunch->file);
+  return out;
 }
 
 // The folder a file is written to or read from ("" for stdin/stdout: the current folder).
@@ -83,7 +93,8 @@ void add_import_opal_options(CLI::App& app, ImportOpalOptions& o) {
 int run_import_opal(const ImportOpalOptions& o) {
   const double version = opal::parse_opal_version(o.opal_version);
   const InputText in = read_input(o.input);
-  OpalImport r = import_opal(in.text, in.name, folder_of(o.input), folder_of(o.common.output), version);
+  const std::string out_dir = folder_of(o.common.output);
+  OpalImport r = import_opal(in.text, in.name, folder_of(o.input), out_dir, version);
   const opal::Note* first_unexplained = nullptr;
   size_t unexplained = 0;
   for (const auto& n : r.notes) {
@@ -100,15 +111,12 @@ int run_import_opal(const ImportOpalOptions& o) {
     throw data_error(in.name, first_unexplained->line,
                      first_unexplained->text + " (--strict; " + std::to_string(unexplained) + " line" +
                          (unexplained == 1 ? "" : "s") + " not understood in all)");
-  validate_import(r, in.name, folder_of(o.common.output));
+  const Machine machine = validate_import(r, in.name, out_dir);
   // The machine must not land on a file it or the import reads (the input, its map, ...).
   if (o.common.output != "-") {
     const std::string out = canonical_path(o.common.output);
-    std::vector<std::string> reads;
+    std::vector<std::string> reads = files_read(machine);
     if (o.input != "-") reads.push_back(o.input);
-    const Machine mm = machine_from_json(r.machine, in.name, folder_of(o.common.output));
-    reads.push_back(mm.field.map);
-    for (const auto& c : mm.cavities) reads.push_back(c.profile);
     for (const auto& p : reads)
       if (!p.empty() && canonical_path(p) == out)
         throw usage_error("-o " + quote(o.common.output) + " is a file the import reads: it would be overwritten");
@@ -153,33 +161,24 @@ int run_export_opal(const ExportOpalCliOptions& o) {
     dist_out = (fs::path(o.common.output).parent_path() / (fs::path(o.common.output).stem().string() + "-dist.dat")).string();
   // No output may land on another output or on a file the machine reads (a measured map
   // overwritten by its 9-digit copy would be lost without a word).
-  auto canon = canonical_path;
   std::vector<std::pair<std::string, std::string>> outs;
   if (to_file) outs.push_back({"-o", o.common.output});
   else if (o.common.output == "-" && fs::exists("/dev/stdout")) outs.push_back({"-o", "/dev/stdout"});  // where stdout goes
   if (!o.files.map_out.empty()) outs.push_back({"--map-out", o.files.map_out});
   if (!dist_out.empty()) outs.push_back({o.files.dist_out.empty() ? "the distribution file" : "--dist-out", dist_out});
-  std::vector<std::string> inputs = {m.field.map};
-  for (const auto& c : m.cavities) inputs.push_back(c.profile);
-  for (const auto& t : m.trimcoils) inputs.push_back(t.table);
-  if (m.bunch) inputs.push_back(m.bunch->file);
+  std::vector<std::string> inputs = files_read(m);
   if (o.machine != "-") inputs.push_back(o.machine);
   if (!o.dvars.empty() && o.dvars != "-") inputs.push_back(o.dvars);
   for (size_t i = 0; i < outs.size(); ++i) {
     for (size_t j = 0; j < i; ++j)
-      if (canon(outs[i].second) == canon(outs[j].second))
+      if (canonical_path(outs[i].second) == canonical_path(outs[j].second))
         throw usage_error(outs[i].first + " and " + outs[j].first + " name the same file " + quote(outs[i].second));
     for (const auto& in : inputs)
-      if (!in.empty() && canon(in) == canon(outs[i].second))
+      if (!in.empty() && canonical_path(in) == canonical_path(outs[i].second))
         throw usage_error(outs[i].first + " " + quote(outs[i].second) + " is a file the machine reads: it would be overwritten");
   }
-  auto rel = [&](const std::string& p) {
-    const fs::path abs = fs::absolute(p).lexically_normal();
-    const fs::path rel = abs.lexically_relative(fs::absolute(out_dir.empty() ? "." : out_dir).lexically_normal());
-    return rel.empty() ? abs.string() : rel.string();
-  };
-  const std::string map_file = o.files.map_out.empty() ? std::string() : rel(o.files.map_out);
-  const std::string dist_file = dist_out.empty() ? std::string("dist1.dat") : rel(dist_out);
+  const std::string map_file = o.files.map_out.empty() ? std::string() : relative_to(o.files.map_out, out_dir);
+  const std::string dist_file = dist_out.empty() ? std::string("dist1.dat") : relative_to(dist_out, out_dir);
   std::vector<std::string> warnings;
   if (dist_out.empty())
     warnings.push_back("the input reads its particle from 'dist1.dat' in the folder OPAL runs in: two lines, '1' and "

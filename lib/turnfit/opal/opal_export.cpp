@@ -4,7 +4,6 @@
 #include <cmath>
 #include <cstdio>
 #include <cstdlib>
-#include <filesystem>
 #include <set>
 #include <sstream>
 
@@ -20,7 +19,6 @@
 namespace turnfit {
 namespace {
 
-namespace fs = std::filesystem;
 using nlohmann::json;
 
 // The shortest decimal that reads back as v (50.65, not 50.649999999999999).
@@ -33,16 +31,6 @@ std::string num(double v) {
   return format_exact(v);
 }
 
-// Words that would read as something else at the start of a statement.
-bool reserved(const std::string& up) {
-  static const std::set<std::string> words = {
-      "REAL", "CONST", "CONSTANT", "BOOL", "STRING", "VECTOR", "INTEGER", "IF", "ELSE", "WHILE", "MACRO",
-      "LINE", "OPTION", "TITLE", "VALUE", "SELECT", "TRACK", "RUN", "ENDTRACK", "STOP", "QUIT", "ECHO",
-      "CYCLOTRON", "RFCAVITY", "TRIMCOIL", "PROBE", "BEAM", "DISTRIBUTION", "FIELDSOLVER", "TRUE", "FALSE",
-      "PI", "TWOPI", "RADDEG", "DEGRAD", "E", "EMASS", "PMASS", "CLIGHT", "OPALVERSION"};
-  return words.count(up) > 0;
-}
-
 // OPAL labels: a letter, then letters, digits, '_' and '.'; unique regardless of case.
 class Labels {
  public:
@@ -50,7 +38,7 @@ class Labels {
     std::string l;
     for (char c : name) l += (std::isalnum(static_cast<unsigned char>(c)) || c == '_' || c == '.') ? c : '_';
     if (l.empty() || !std::isalpha(static_cast<unsigned char>(l[0]))) l = "E" + l;
-    if (reserved(opal::upper(l))) l += "_";
+    if (opal::reserved(opal::upper(l))) l += "_";
     std::string base = l;
     for (int k = 2; used_.count(opal::upper(l)); ++k) l = base + "_" + std::to_string(k);
     used_.insert(opal::upper(l));
@@ -60,13 +48,6 @@ class Labels {
  private:
   std::set<std::string> used_;
 };
-
-std::string path_for(const std::string& p, const std::string& out_dir) {
-  const fs::path abs = fs::absolute(fs::path(p)).lexically_normal();
-  const fs::path dir = fs::absolute(out_dir.empty() ? fs::path(".") : fs::path(out_dir)).lexically_normal();
-  const fs::path rel = abs.lexically_relative(dir);
-  return rel.empty() ? abs.string() : rel.string();
-}
 
 std::string quoted(const std::string& s, const std::string& what) {
   if (s.find('"') != std::string::npos || s.find('\n') != std::string::npos || s.find('\\') != std::string::npos)
@@ -136,11 +117,10 @@ std::string export_opal(const Machine& m, const std::string& out_dir, const std:
     }
     // OPAL 2022.1 needs the window written out (unset, a coil acts at azimuth 0 alone); a
     // window through azimuth 0 is PHIMIN > PHIMAX there.
-    double lo = t.phimin_deg, hi = t.phimax_deg;
-    if (hi - lo >= 360) lo = 0, hi = 360;
-    lo = std::fmod(lo, 360.0);
+    const double width = std::min(t.phimax_deg - t.phimin_deg, 360.0);
+    double lo = width >= 360 ? 0 : std::fmod(t.phimin_deg, 360.0);
     if (lo < 0) lo += 360;
-    hi = lo + (std::min(t.phimax_deg - t.phimin_deg, 360.0));
+    double hi = lo + width;
     if (hi > 360) hi -= 360;
     os << ",\n    PHIMIN = " << num(lo) << ", PHIMAX = " << num(hi) << ";\n";
   }
@@ -152,7 +132,7 @@ std::string export_opal(const Machine& m, const std::string& out_dir, const std:
     if (m.field.format != "psi-ring")
       throw usage_error("the machine's field map is in turnfit's format, which OPAL cannot read: give --map-out FILE "
                         "to write it in OPAL's RING format");
-    map = path_for(m.field.map, out_dir);
+    map = relative_to(m.field.map, out_dir);
   }
   os << ring << ": CYCLOTRON, TYPE = \"RING\", FMAPFN = " << quoted(map, mname);
   // OPAL's SYMMETRY has no default: a machine that takes it from the map gets the map's. OPAL
@@ -183,7 +163,7 @@ std::string export_opal(const Machine& m, const std::string& out_dir, const std:
     const std::string l = labels.make(c.name);
     members.push_back(l);
     os << l << ": RFCAVITY, TYPE = \"SINGLEGAP\", VOLT = " << num(c.voltage_MV);
-    if (!c.profile.empty()) os << ", FMAPFN = " << quoted(path_for(c.profile, out_dir), mname);
+    if (!c.profile.empty()) os << ", FMAPFN = " << quoted(relative_to(c.profile, out_dir), mname);
     else warnings.push_back("cavity " + quote(c.name) + " has no voltage profile (flat): OPAL's SINGLEGAP needs FMAPFN");
     os << ",\n    FREQ = " << num(c.harmonic_factor * m.rf.frequency_MHz) << ", PHI0 = " << num(c.phase_deg)
        << ", ANGLE = " << num(c.angle_deg) << ", PDIS = " << num(c.pdis_mm) << ",\n    RMIN = "

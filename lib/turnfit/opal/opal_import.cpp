@@ -5,6 +5,7 @@
 #include <cstdio>
 #include <filesystem>
 #include <map>
+#include <optional>
 #include <set>
 
 #include "turnfit/field/map_io.hpp"
@@ -41,18 +42,49 @@ double tidy(double v) {
 
 std::string num(double v) { return format_exact(tidy(v)); }
 
+// Where the polynomial c_0 + c_1 x + ... is 0 (or not finite) on [lo, hi], if anywhere: a sign
+// change between 2000 samples, or a double root where |g| only touches 0 (a local minimum of
+// the samples refined by golden section, at most 1e-12 of the largest |g|).
+std::optional<double> root_within(const std::vector<double>& c, double lo, double hi) {
+  auto g_at = [&](double x) {
+    double g = 0;
+    for (size_t j = c.size(); j-- > 0;) g = g * x + c[j];
+    return g;
+  };
+  constexpr int kSamples = 2000;
+  auto x_of = [&](int k) { return lo + (hi - lo) * k / kSamples; };
+  std::vector<double> g(kSamples + 1);
+  double gmax = 0;
+  for (int k = 0; k <= kSamples; ++k) {
+    g[k] = g_at(x_of(k));
+    gmax = std::max(gmax, std::fabs(g[k]));
+  }
+  for (int k = 0; k <= kSamples; ++k) {
+    if (g[k] == 0 || !std::isfinite(g[k]) || (k > 0 && (g[k] > 0) != (g[k - 1] > 0))) return x_of(k);
+    if (k > 0 && k < kSamples && std::fabs(g[k]) <= std::fabs(g[k - 1]) && std::fabs(g[k]) <= std::fabs(g[k + 1])) {
+      double a = x_of(k - 1), b = x_of(k + 1);
+      const double gr = 0.5 * (std::sqrt(5.0) - 1);
+      for (int it = 0; it < 100 && b - a > 1e-15; ++it) {
+        const double p = b - gr * (b - a), q = a + gr * (b - a);
+        if (std::fabs(g_at(p)) < std::fabs(g_at(q))) b = q;
+        else a = p;
+      }
+      if (std::fabs(g_at(0.5 * (a + b))) <= 1e-12 * gmax) return 0.5 * (a + b);
+    }
+  }
+  return std::nullopt;
+}
+
 // Reads one command's attributes: every attribute must be taken, explained, or is reported.
 class Attrs {
  public:
   Attrs(const Command& c, const Input& in, std::vector<Note>& notes) : c_(c), in_(in), notes_(notes) {}
-  ~Attrs() = default;
 
   const Attribute* take(const std::string& n) {
     const Attribute* a = c_.find(n);
     if (a) used_.insert(n);
     return a;
   }
-  bool has(const std::string& n) const { return c_.find(n) != nullptr; }
   std::optional<double> number(const std::string& n) {
     const Attribute* a = take(n);
     if (!a) return std::nullopt;
@@ -110,16 +142,22 @@ struct Importer {
   std::vector<Note> notes;
   std::vector<std::string> remarks;  // choices stated in the machine's description
   std::map<std::string, long> lines_of;  // JSON pointer of the machine -> the input line it came from
+  std::map<std::string, const Command*> by_label;  // upper-case label -> its (last) definition
 
   Error error(long line, const std::string& msg) const { return data_error(in.name(), line, msg); }
   void note(long line, const std::string& text, bool explained = true) { notes.push_back({line, text, explained}); }
 
   // An input file name as OPAL would open it (relative to the folder OPAL runs in: the input's).
+  fs::path input_path(const std::string& f) const {
+    const fs::path p = fs::path(f).is_absolute() ? fs::path(f) : fs::path(in_dir.empty() ? "." : in_dir) / f;
+    return fs::absolute(p).lexically_normal();
+  }
+
+  // The same, for a file the machine needs: it must be there (unless check_files is off).
   std::string existing_file(Attrs& r, const Attribute& a, const std::string& what) const {
     const std::string f = in.string(a);
     if (f.empty()) throw r.error(a, "empty file name");
-    fs::path p = fs::path(f).is_absolute() ? fs::path(f) : fs::path(in_dir.empty() ? "." : in_dir) / f;
-    p = fs::absolute(p).lexically_normal();
+    const fs::path p = input_path(f);
     std::error_code ec;
     if (check_files && !fs::is_regular_file(p, ec))
       throw r.error(a, what + " " + quote(f) + " is not there (looked for " + quote(p.string()) + ")" +
@@ -129,9 +167,16 @@ struct Importer {
     return p.string();
   }
 
+  // The element an attribute names (of type `keyword`); EX_DATAERR at the attribute otherwise.
+  const Command& element(const Attrs& r, const Attribute& a, const std::string& n, const std::string& keyword) const {
+    auto it = by_label.find(upper(n));
+    if (it == by_label.end() || it->second->keyword != keyword)
+      throw r.error(a, quote(n) + " is not a " + keyword + " defined in the input");
+    return *it->second;
+  }
+
   json run() {
     const auto& cmds = in.commands();
-    std::map<std::string, const Command*> by_label;
     std::vector<const Command*> tracks, runs, selects, lines;
     std::string title;
     // The run imported is the last RUN: OPAL evaluates deferred (':=') values when it runs, and
@@ -290,7 +335,6 @@ struct Importer {
       }
       if (auto s = r.number("BSCALE")) field["scale"] = *s;
       if (auto s = r.number("TRIMCOILTHRESHOLD")) field["trimcoil_threshold_T"] = *s;
-      m["particle"] = json::object();
       m["field"] = field;
       lines_of["/field"] = lines_of["/rf"] = lines_of["/injection"] = cyc->line;
       json rf = json::object();
@@ -317,10 +361,7 @@ struct Importer {
         std::set<std::string> listed;
         for (const std::string& n : in.names(*a)) {
           if (!listed.insert(upper(n)).second) throw r.error(*a, quote(n) + " is listed twice");
-          auto t = by_label.find(upper(n));
-          if (t == by_label.end() || t->second->keyword != "TRIMCOIL")
-            throw r.error(*a, quote(n) + " is not a TRIMCOIL defined in the input");
-          trimcoil(*t->second, trims);
+          trimcoil(element(r, *a, n, "TRIMCOIL"), trims);
         }
       }
       r.explain("FMLOWE", "energy range of OPAL's closed-orbit finder (GAUSSMATCHED): turnfit-orbit --energies does this");
@@ -344,8 +385,8 @@ struct Importer {
       }
 
     // Beam: particle and energy.
-    const Command* beam = named(track, "BEAM", "BEAM", by_label);
-    if (!beam && !runs.empty()) beam = named(runs.back(), "BEAM", "BEAM", by_label);
+    const Command* beam = named_beam(track);
+    if (!beam && !runs.empty()) beam = named_beam(runs.back());
     if (!beam) beam = only(cmds, "BEAM");
     if (!beam) throw error(track ? track->line : line.line, "no BEAM: the particle and its energy are unknown");
     double mass_MeV = 0;
@@ -474,23 +515,10 @@ struct Importer {
           note(run.find("METHOD")->line, "RUN METHOD = " + *meth + " is not OPAL's cyclotron tracker (CYCLOTRON-T)", false);
       }
       r.take("BEAM");
-      if (const Attribute* a = r.take("FIELDSOLVER")) {
-        auto fsn = in.names(*a);
-        for (const auto& n : fsn) {
-          auto f = by_label.find(upper(n));
-          if (f == by_label.end() || f->second->keyword != "FIELDSOLVER")
-            throw r.error(*a, quote(n) + " is not a FIELDSOLVER defined in the input");
-          fieldsolver(*f->second);
-        }
-      }
-      if (const Attribute* a = r.take("DISTRIBUTION")) {
-        for (const auto& n : in.names(*a)) {
-          auto d = by_label.find(upper(n));
-          if (d == by_label.end() || d->second->keyword != "DISTRIBUTION")
-            throw r.error(*a, quote(n) + " is not a DISTRIBUTION defined in the input");
-          distribution(*d->second);
-        }
-      }
+      if (const Attribute* a = r.take("FIELDSOLVER"))
+        for (const auto& n : in.names(*a)) fieldsolver(element(r, *a, n, "FIELDSOLVER"));
+      if (const Attribute* a = r.take("DISTRIBUTION"))
+        for (const auto& n : in.names(*a)) distribution(element(r, *a, n, "DISTRIBUTION"));
       if (const Attribute* a = r.take("TURNS")) {
         const double t = in.number(*a);
         if (t == 1) note(a->line, "RUN TURNS = 1: one bunch (OPAL's multi-bunch count)");
@@ -515,16 +543,11 @@ struct Importer {
     return std::to_string(v / 10000) + "." + std::to_string(v / 100 % 100) + "." + std::to_string(v % 100);
   }
 
-  const Command* named(const Command* c, const std::string& attr, const std::string& keyword,
-                       const std::map<std::string, const Command*>& by_label) const {
-    if (!c) return nullptr;
-    const Attribute* a = c->find(attr);
-    if (!a) return nullptr;
-    const std::string n = in.string(*a);
-    auto it = by_label.find(upper(n));
-    if (it == by_label.end() || it->second->keyword != keyword)
-      throw error(a->line, c->keyword + " " + attr + ": " + quote(n) + " is not a " + keyword + " defined in the input");
-    return it->second;
+  // The BEAM a TRACK or RUN names, or nullptr when it names none.
+  const Command* named_beam(const Command* c) {
+    if (!c || !c->find("BEAM")) return nullptr;
+    const Attrs r(*c, in, notes);
+    return &element(r, *c->find("BEAM"), in.string(*c->find("BEAM")), "BEAM");
   }
 
   static const Command* only(const std::vector<Command>& cmds, const std::string& keyword) {
@@ -551,7 +574,6 @@ struct Importer {
     else {
       note(type->line, r.what() + " TYPE = " + in.string(*type) + " is not a trim coil type OPAL " + version_text() +
                            " or turnfit has (PSI-BFIELD, PSI-PHASE, PSI-BFIELD-MIRRORED): coil left out", false);
-      for (const auto& a : c.attrs) r.take(a.name);
       return;
     }
     t["type"] = tt;
@@ -573,40 +595,11 @@ struct Importer {
       if (num_c.empty()) num_c = {1.0};
       t["coefnum"] = num_c;
       if (!den_c.empty()) {
-        // f/g must be finite on the coil: a denominator with a root there (a sign change, or a
-        // double root where |g| only touches 0) gives an infinite field.
+        // f/g must be finite on the coil: a denominator with a root there gives an infinite field.
         const double lo = t["rmin_mm"].get<double>() * 1e-3, hi = t["rmax_mm"].get<double>() * 1e-3;
-        auto g_at = [&](double x) {
-          double g = 0;
-          for (size_t j = den_c.size(); j-- > 0;) g = g * x + den_c[j];
-          return g;
-        };
-        constexpr int kSamples = 2000;
-        std::vector<double> g(kSamples + 1);
-        double gmax = 0;
-        for (int k = 0; k <= kSamples; ++k) {
-          g[k] = g_at(lo + (hi - lo) * k / kSamples);
-          gmax = std::max(gmax, std::fabs(g[k]));
-        }
-        auto refuse = [&](double x) {
-          throw r.error(*c.find("COEFDENOM"), "the denominator is 0 within RMIN..RMAX (near r = " + num(x * 1e3) +
+        if (const auto root = root_within(den_c, lo, hi))
+          throw r.error(*c.find("COEFDENOM"), "the denominator is 0 within RMIN..RMAX (near r = " + num(*root * 1e3) +
                                                   " mm): the coil's field would be infinite there");
-        };
-        for (int k = 0; k <= kSamples; ++k) {
-          const double x = lo + (hi - lo) * k / kSamples;
-          if (g[k] == 0 || !std::isfinite(g[k]) || (k > 0 && (g[k] > 0) != (g[k - 1] > 0))) refuse(x);
-          if (k > 0 && k < kSamples && std::fabs(g[k]) <= std::fabs(g[k - 1]) && std::fabs(g[k]) <= std::fabs(g[k + 1])) {
-            // A local minimum of |g|: golden-section search between the neighbouring samples.
-            double a = lo + (hi - lo) * (k - 1) / kSamples, b = lo + (hi - lo) * (k + 1) / kSamples;
-            const double gr = 0.5 * (std::sqrt(5.0) - 1);
-            for (int it = 0; it < 100 && b - a > 1e-15; ++it) {
-              const double p = b - gr * (b - a), q = a + gr * (b - a);
-              if (std::fabs(g_at(p)) < std::fabs(g_at(q))) b = q;
-              else a = p;
-            }
-            if (std::fabs(g_at(0.5 * (a + b))) <= 1e-12 * gmax) refuse(0.5 * (a + b));
-          }
-        }
         t["coefdenom"] = den_c;
       }
       r.explain("SLPTC", "used only by PSI-BFIELD-MIRRORED");
@@ -674,7 +667,6 @@ struct Importer {
     if (ty != "SINGLEGAP") {
       note(type ? type->line : c.line, r.what() + ": TYPE " + (type ? quote(in.string(*type)) : std::string("(none)")) +
                                            " is not understood (turnfit has SINGLEGAP cavities): cavity left out", false);
-      for (const auto& a : c.attrs) r.take(a.name);
       return;
     }
     json k = json::object();
@@ -730,7 +722,6 @@ struct Importer {
     const std::string t = upper(r.string("FSTYPE").value_or("NONE"));
     if (t == "NONE") note(c.line, "FIELDSOLVER " + c.label + ": FSTYPE = NONE, no space charge");
     else note(c.line, "FIELDSOLVER " + c.label + ": space charge (FSTYPE = " + t + ") is not modelled by turnfit yet", false);
-    for (const auto& a : c.attrs) r.take(a.name);
   }
 
   void distribution(const Command& c) {
@@ -740,16 +731,11 @@ struct Importer {
     if (t == "FROMFILE") {
       const Attribute* f = r.take("FNAME");
       if (!f) throw error(c.line, r.what() + ": FROMFILE without FNAME");
-      fs::path p = fs::path(in.string(*f));
-      if (!p.is_absolute()) p = fs::path(in_dir.empty() ? "." : in_dir) / p;
+      if (!check_files) return;
+      const fs::path p = input_path(in.string(*f));
       std::error_code ec;
-      if (!check_files) {
-        for (const auto& a : c.attrs) r.take(a.name);
-        return;
-      }
       if (!fs::is_regular_file(p, ec)) {
         note(f->line, "DISTRIBUTION " + c.label + ": file " + quote(in.string(*f)) + " is not there: not read", false);
-        for (const auto& a : c.attrs) r.take(a.name);
         return;
       }
       const InputText txt = read_input(p.string());
@@ -787,40 +773,10 @@ struct Importer {
       note(type ? type->line : c.line, "DISTRIBUTION " + c.label + ": TYPE " + (t.empty() ? std::string("(none)") : t) +
                                             " is not understood", false);
     }
-    for (const auto& a : c.attrs) r.take(a.name);
   }
 };
 
-// Paths in a machine document: apply f to each (field map, profiles, coil tables, bunch file).
-void for_each_path(json& m, const std::function<void(json&)>& f) {
-  if (m.contains("field") && m["field"].contains("map")) f(m["field"]["map"]);
-  for (const char* list : {"cavities", "trimcoils"}) {
-    if (!m.contains(list) || !m[list].is_array()) continue;
-    for (auto& e : m[list])
-      for (const char* k : {"profile", "table"})
-        if (e.is_object() && e.contains(k) && e[k].is_string()) f(e[k]);
-  }
-  if (m.contains("bunch") && m["bunch"].is_object() && m["bunch"].contains("file") && m["bunch"]["file"].is_string())
-    f(m["bunch"]["file"]);
-}
-
-std::string folder(const std::string& d) {
-  return fs::absolute(d.empty() ? fs::path(".") : fs::path(d)).lexically_normal().string();
-}
-
 }  // namespace
-
-void rebase_paths(json& m, const std::string& from_dir, const std::string& to_dir) {
-  const fs::path from = folder(from_dir), to = folder(to_dir);
-  for_each_path(m, [&](json& p) {
-    const std::string s = p.get<std::string>();
-    if (s.empty()) return;
-    fs::path abs = fs::path(s).is_absolute() ? fs::path(s) : from / s;
-    abs = abs.lexically_normal();
-    fs::path rel = abs.lexically_relative(to);
-    p = rel.empty() ? abs.string() : rel.string();
-  });
-}
 
 OpalImport import_opal(const std::string& text, const std::string& name, const std::string& in_dir,
                        const std::string& out_dir, double opal_version, bool check_files) {
@@ -854,7 +810,7 @@ OpalImport import_opal(const std::string& text, const std::string& name, const s
       out.machine = restored;
       out.from_annotation = changed.empty();
       out.annotation_line = line;
-      for (const char* sec : {"particle", "field", "rf", "cavities", "trimcoils", "probes", "injection", "tracking"})
+      for (const auto& sec : opal_sections())
         if (std::find(changed.begin(), changed.end(), sec) == changed.end()) out.restored.push_back(sec);
       imp.notes.push_back({line, changed.empty()
                                      ? "turnfit annotation: the commands are those turnfit-export-opal wrote, so the "
@@ -879,9 +835,9 @@ OpalImport import_opal(const std::string& text, const std::string& name, const s
   return out;
 }
 
-void validate_import(const OpalImport& r, const std::string& name, const std::string& out_dir) {
+Machine validate_import(const OpalImport& r, const std::string& name, const std::string& out_dir) {
   try {
-    machine_from_json(r.machine, name + " (imported machine)", out_dir);
+    return machine_from_json(r.machine, name + " (imported machine)", out_dir);
   } catch (const Error& e) {
     // Named by the line the value came from: its command, or the annotation for what the
     // annotation restored (and for what only the annotation carries: bunch, effects, ...).

@@ -110,7 +110,33 @@ constexpr size_t kTokens = 2000000;    // tokens of one input (cyclotron2.in has
 constexpr int kNesting = 3000;
 constexpr long kSteps = 1000000;
 
+// The first ',' outside brackets in t[from, end), or end.
+size_t top_level_comma(const Tokens& t, size_t from, size_t end) {
+  int depth = 0;
+  for (size_t k = from; k < end; ++k) {
+    if (t[k].kind != Kind::punct) continue;
+    const std::string& p = t[k].text;
+    if (p == "," && depth == 0) return k;
+    if (p == "(" || p == "{" || p == "[") ++depth;
+    if (p == ")" || p == "}" || p == "]") --depth;
+  }
+  return end;
+}
+
+bool is_decl(const std::string& up) {
+  return up == "REAL" || up == "CONST" || up == "CONSTANT" || up == "BOOL" || up == "STRING" || up == "INTEGER" ||
+         up == "VECTOR";
+}
+
 }  // namespace
+
+bool reserved(const std::string& up) {
+  static const std::set<std::string> words = {
+      "IF", "ELSE", "WHILE", "MACRO", "TRUE", "FALSE", "OPALVERSION", "LINE", "OPTION", "TITLE", "VALUE",
+      "SELECT", "TRACK", "RUN", "ENDTRACK", "STOP", "QUIT", "ECHO", "CYCLOTRON", "RFCAVITY", "TRIMCOIL",
+      "PROBE", "BEAM", "DISTRIBUTION", "FIELDSOLVER"};
+  return is_decl(up) || words.count(up) > 0 || constants().count(up) > 0;
+}
 
 struct Input::Impl {
   std::string name;
@@ -156,28 +182,19 @@ struct Input::Impl {
   Error error(long line, const std::string& msg) const { return data_error(name, line, msg); }
 
   // ---- tokens ----
-  void lex(const std::string& text) {
-    long line = 1;
-    size_t i = 0;
-    int braces = 0;           // IF blocks (and arrays) open here
-    bool at_statement = true;  // the next token starts a statement
+  // Moves i past blanks and comments (counting lines); an unclosed '/*' is an error.
+  void skip_blanks(const std::string& text, size_t& i, long& line) const {
     const size_t n = text.size();
     while (i < n) {
       const char c = text[i];
       if (c == '\n') {
         ++line;
         ++i;
-        continue;
-      }
-      if (c == ' ' || c == '\t' || c == '\r' || c == '\f' || c == '\v') {
+      } else if (c == ' ' || c == '\t' || c == '\r' || c == '\f' || c == '\v') {
         ++i;
-        continue;
-      }
-      if (c == '/' && i + 1 < n && text[i + 1] == '/') {
+      } else if (c == '/' && i + 1 < n && text[i + 1] == '/') {
         while (i < n && text[i] != '\n') ++i;
-        continue;
-      }
-      if (c == '/' && i + 1 < n && text[i + 1] == '*') {
+      } else if (c == '/' && i + 1 < n && text[i + 1] == '*') {
         const long start = line;
         i += 2;
         while (i + 1 < n && !(text[i] == '*' && text[i + 1] == '/')) {
@@ -186,8 +203,22 @@ struct Input::Impl {
         }
         if (i + 1 >= n) throw error(start, "'/*' comment is never closed");
         i += 2;
-        continue;
+      } else {
+        return;
       }
+    }
+  }
+
+  void lex(const std::string& text) {
+    long line = 1;
+    size_t i = 0;
+    int braces = 0;           // IF blocks (and arrays) open here
+    bool at_statement = true;  // the next token starts a statement
+    const size_t n = text.size();
+    for (;;) {
+      skip_blanks(text, i, line);
+      if (i >= n) break;
+      const char c = text[i];
       if (toks.size() >= kTokens) throw error(line, "more than " + std::to_string(kTokens) + " tokens");
       Token t;
       t.line = line;
@@ -256,23 +287,10 @@ struct Input::Impl {
         // OPAL reads no further than a STOP at the top level: whatever follows is not lexed
         // (an unclosed string there is no error), only counted for the note.
         size_t j = i;
-        long skipped_lines = 0;
-        for (;;) {  // blanks and comments before its ';'
-          if (j < n && std::isspace(static_cast<unsigned char>(text[j]))) {
-            skipped_lines += text[j++] == '\n';
-          } else if (j + 1 < n && text[j] == '/' && text[j + 1] == '/') {
-            while (j < n && text[j] != '\n') ++j;
-          } else if (j + 1 < n && text[j] == '/' && text[j + 1] == '*') {
-            const size_t e = text.find("*/", j + 2);
-            if (e == std::string::npos) break;
-            for (size_t k = j; k < e; ++k) skipped_lines += text[k] == '\n';
-            j = e + 2;
-          } else {
-            break;
-          }
-        }
+        long semicolon_line = line;
+        skip_blanks(text, j, semicolon_line);  // blanks and comments before its ';'
         if (j < n && text[j] == ';') {
-          line += skipped_lines;
+          line = semicolon_line;
           toks.push_back(Token{Kind::punct, ";", line});
           // Lines after the STOP's that hold anything, for the note.
           bool content = false;
@@ -397,10 +415,6 @@ struct Input::Impl {
     }
   }
 
-  static bool is_decl(const std::string& up) {
-    return up == "REAL" || up == "CONST" || up == "CONSTANT" || up == "BOOL" || up == "STRING" || up == "INTEGER" || up == "VECTOR";
-  }
-
   void define(const Token& nm, const std::string& type, bool is_const, bool deferred, Tokens expr) {
     if (nm.kind != Kind::name) throw error(nm.line, show(nm) + " is not a variable name");
     const std::string key = upper(nm.text);
@@ -522,17 +536,9 @@ struct Input::Impl {
       if (k < st.size() && st[k].kind == Kind::punct && (st[k].text == "=" || st[k].text == ":=")) {
         if (st[k].text == ":=") a.seq = kEnd;
         ++k;
-        int depth = 0;
-        while (k < st.size()) {
-          const Token& t = st[k];
-          if (t.kind == Kind::punct) {
-            if (t.text == "," && depth == 0) break;
-            if (t.text == "(" || t.text == "{" || t.text == "[") ++depth;
-            if (t.text == ")" || t.text == "}" || t.text == "]") --depth;
-          }
-          a.value.push_back(t);
-          ++k;
-        }
+        const size_t end = top_level_comma(st, k, st.size());
+        a.value.assign(st.begin() + static_cast<long>(k), st.begin() + static_cast<long>(end));
+        k = end;
         if (a.value.empty()) throw error(a.line, "attribute " + show(st[k - 1]) + " has no value after '='");
       }
       if (!names.insert(a.name).second) throw error(a.line, "attribute " + quote(a.spelled) + " is given twice");
@@ -853,24 +859,15 @@ std::vector<double> Input::numbers(const Attribute& a) const {
   if (!(v.back().kind == Kind::punct && v.back().text == "}"))
     throw impl_->error(a.line, "attribute " + quote(a.spelled) + ": an array is {a, b, ...}");
   std::vector<double> out;
-  Tokens cur;
-  int depth = 0;
-  for (size_t i = 1; i + 1 < v.size(); ++i) {
-    const Token& t = v[i];
-    if (t.kind == Kind::punct) {
-      if (t.text == "(" || t.text == "{") ++depth;
-      if (t.text == ")" || t.text == "}") --depth;
-      if (t.text == "," && depth == 0) {
-        if (cur.empty()) throw impl_->error(t.line, "empty element before " + show(t) + " in " + quote(a.spelled));
-        out.push_back(impl_->eval_tokens(cur, t.line, impl_->when(a)));
-        cur.clear();
-        continue;
-      }
-    }
-    cur.push_back(t);
+  const size_t last = v.size() - 1;  // the closing '}'
+  for (size_t i = 1; i < last;) {
+    const size_t comma = top_level_comma(v, i, last);
+    if (comma == i) throw impl_->error(v[i].line, "empty element before " + show(v[i]) + " in " + quote(a.spelled));
+    out.push_back(impl_->eval_tokens(Tokens(v.begin() + static_cast<long>(i), v.begin() + static_cast<long>(comma)),
+                                      v[i].line, impl_->when(a)));
+    i = comma + 1;
+    if (comma + 1 == last) throw impl_->error(v.back().line, "empty element at the end of " + quote(a.spelled));
   }
-  if (!cur.empty()) out.push_back(impl_->eval_tokens(cur, cur.front().line, impl_->when(a)));
-  else if (!out.empty()) throw impl_->error(v.back().line, "empty element at the end of " + quote(a.spelled));
   return out;
 }
 
@@ -912,6 +909,5 @@ double Input::variable(const std::string& n, long line) const {
 
 void Input::set_evaluation_point(long seq) { impl_->run_at = seq; }
 
-bool Input::has_variable(const std::string& n) const { return impl_->vars.count(upper(n)) > 0; }
 
 }  // namespace turnfit::opal

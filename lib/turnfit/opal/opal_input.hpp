@@ -84,8 +84,6 @@ class Input {
   std::vector<std::string> names(const Attribute& a) const;
   /// The value of variable NAME (any case), evaluating it now; EX_DATAERR if undefined.
   double variable(const std::string& name, long line) const;
-  /// Whether NAME (any case) is a user-defined variable.
-  bool has_variable(const std::string& name) const;
   /// Where `:=` values are taken: the definitions before statement `seq` (a RUN: OPAL
   /// evaluates deferred expressions when it runs); by default after the whole input.
   void set_evaluation_point(long seq);
@@ -97,5 +95,10 @@ class Input {
 
 /// Upper-cases an OPAL name (OPAL's names are case-insensitive).
 std::string upper(std::string s);
+
+/// Whether an upper-case word has a meaning of its own in the language (a declaration, IF and
+/// its kin, a command the importer reads, TRUE/FALSE, a predefined constant): not a label to
+/// write.
+bool reserved(const std::string& up);
 
 }  // namespace turnfit::opal

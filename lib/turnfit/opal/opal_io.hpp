@@ -36,9 +36,9 @@ OpalImport import_opal(const std::string& text, const std::string& name, const s
                        const std::string& out_dir, double opal_version = kDefaultOpalVersion,
                        bool check_files = true);
 
-/// Checks that an import's machine loads (turnfit-machine(5)); a refusal is EX_DATAERR naming
-/// the input line the refused value came from (its command, or the annotation).
-void validate_import(const OpalImport& r, const std::string& name, const std::string& out_dir);
+/// The machine of an import, loaded (turnfit-machine(5)); a refusal is EX_DATAERR naming the
+/// input line the refused value came from (its command, or the annotation).
+Machine validate_import(const OpalImport& r, const std::string& name, const std::string& out_dir);
 
 /// Options of turnfit-export-opal.
 struct ExportOpalOptions {
