@@ -432,6 +432,35 @@ Bunch read_bunch(json& j, const std::string& file, const std::string& dir) {
   return b;
 }
 
+SpaceChargeSpec read_space_charge(json& j, const std::string& file) {
+  Reader r(j, file, "/space_charge", {"current_uA", "grid", "every_steps", "halo_sigma"});
+  SpaceChargeSpec sc;
+  sc.current_uA = r.number("current_uA");
+  if (sc.current_uA < 0) throw r.error("current_uA", "must be >= 0, got " + num(sc.current_uA));
+  if (r.has("grid")) {
+    const json& g = r.raw("grid");
+    if (!g.is_array() || g.size() != 3)
+      throw r.error("grid", "expected an array of three grid sizes [radial, vertical, longitudinal]");
+    for (size_t k = 0; k < 3; ++k) {
+      const json& v = g[k];
+      if (!v.is_number_integer() || v.get<long long>() < 8 || v.get<long long>() > 512)
+        throw data_error(file, 0, r.at("grid") + "/" + std::to_string(k) +
+                                      ": a grid size is a whole number from 8 to 512 (fewer points cannot resolve "
+                                      "a bunch)");
+      sc.grid[k] = static_cast<int>(v.get<long long>());
+    }
+  } else {
+    r.raw("grid") = json::array({sc.grid[0], sc.grid[1], sc.grid[2]});
+  }
+  sc.every_steps = r.integer("every_steps", 1);
+  if (sc.every_steps < 1 || sc.every_steps > 100000)
+    throw r.error("every_steps", "must be from 1 to 100000, got " + num(sc.every_steps));
+  sc.halo_sigma = r.number("halo_sigma", 8.0);
+  if (sc.halo_sigma != 0 && !(sc.halo_sigma >= 3))
+    throw r.error("halo_sigma", "must be 0 (no halo cut) or at least 3, got " + num(sc.halo_sigma));
+  return sc;
+}
+
 Tracking read_tracking(json& j, const std::string& file) {
   Reader r(j, file, "/tracking", {"integrator", "steps_per_turn", "step_deg", "turns"});
   Tracking t;
@@ -782,7 +811,7 @@ Machine build(const json& input, const std::string& file, const std::string& dir
   json& doc = m.doc;
   Reader top(doc, file, "",
              {"format", "name", "description", "particle", "field", "rf", "cavities", "trimcoils",
-              "probes", "injection", "bunch", "tracking", "effects", "dvars"});
+              "probes", "injection", "bunch", "space_charge", "tracking", "effects", "dvars"});
   std::string format = top.string("format");
   if (format != kFormat)
     throw top.error("format", "expected '" + std::string(kFormat) + "', got '" + format + "'");
@@ -814,6 +843,7 @@ Machine build(const json& input, const std::string& file, const std::string& dir
   }
   if (top.has("injection")) m.injection = read_injection(doc["injection"], file);
   if (top.has("bunch")) m.bunch = read_bunch(doc["bunch"], file, dir);
+  if (top.has("space_charge")) m.space_charge = read_space_charge(doc["space_charge"], file);
   if (top.has("tracking")) m.tracking = read_tracking(doc["tracking"], file);
   if (top.has("effects")) {
     m.effect_set = read_effects(doc["effects"], file, m);

@@ -111,6 +111,15 @@ struct Bunch {
   std::string file;                  ///< CSV of offsets (resolved path); overrides the Gaussian
 };
 
+/// The bunch's own field (machine-file `space_charge`, turnfit-machine(5)): a bunch run of a
+/// machine with this block feels it (turnfit-track, turnfit-synth).
+struct SpaceChargeSpec {
+  double current_uA = 0;     ///< beam current; the bunch charge is current / f_rf (0: none)
+  int grid[3] = {32, 32, 32};  ///< the Poisson solver's grid points (radial, vertical, longitudinal)
+  int every_steps = 1;       ///< one solve every this many integration steps
+  double halo_sigma = 8;     ///< particles beyond this many rms of the bunch see its monopole only (0: none)
+};
+
 /// Tracking settings.
 struct Tracking {
   std::string integrator;   ///< empty: the tool's default
@@ -236,6 +245,7 @@ struct Machine {
   std::vector<Probe> probes;
   std::optional<Injection> injection;
   std::optional<Bunch> bunch;
+  std::optional<SpaceChargeSpec> space_charge;
   Tracking tracking;
   nlohmann::json effects = nlohmann::json::array();  ///< the `effects` section as loaded (normalized)
   Effects effect_set;                                ///< the same, validated and typed

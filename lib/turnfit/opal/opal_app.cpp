@@ -60,7 +60,7 @@ nlohmann::ordered_json in_reading_order(const nlohmann::json& m) {
   };
   nlohmann::ordered_json out = nlohmann::ordered_json::object();
   for (const char* k : {"format", "name", "description", "particle", "field", "rf", "cavities", "trimcoils", "probes",
-                        "injection", "bunch", "tracking", "effects", "dvars"}) {
+                        "injection", "bunch", "space_charge", "tracking", "effects", "dvars"}) {
     if (!m.contains(k)) continue;
     if (m[k].is_array() && std::string(k) != "effects") {
       nlohmann::ordered_json a = nlohmann::ordered_json::array();

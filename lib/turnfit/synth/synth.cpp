@@ -5,6 +5,7 @@
 #include <algorithm>
 #include <cmath>
 #include <map>
+#include <memory>
 
 #include "turnfit/io/error.hpp"
 #include "turnfit/io/parallel.hpp"
@@ -463,7 +464,15 @@ SynthResult synthesize(const Machine& truth, const SynthSettings& s) {
       h.reserve(turns.size());
       for (const auto& t : turns) h.push_back({t.probe, t.turn, t.r_mm});
     };
-    BunchResult br = track_bunch(model, starts, s.track, s.threads, {}, sink);
+    std::unique_ptr<sc::SpaceChargeKick> sck;
+    CollectiveKick ck;
+    if (s.space_charge && s.wire.current_uA > 0) {
+      sc::SpaceChargeSettings scs = s.sc;
+      scs.current_uA = s.wire.current_uA;
+      sck = std::make_unique<sc::SpaceChargeKick>(model, scs, starts.size(), s.threads);
+      ck = sck->collective();
+    }
+    BunchResult br = track_bunch(model, starts, s.track, s.threads, {}, sink, sck ? &ck : nullptr);
     res.particles = br.particles;
     res.lost = br.lost.size();
     res.centroids = br.centroids;

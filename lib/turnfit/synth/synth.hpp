@@ -7,6 +7,7 @@
 #include <vector>
 
 #include "turnfit/machine/machine.hpp"
+#include "turnfit/spacecharge/space_charge.hpp"
 #include "turnfit/track/bunch.hpp"
 #include "turnfit/track/tracker.hpp"
 
@@ -106,6 +107,10 @@ struct SynthSettings {
   PhaseModel phase;
   bool profiles = true;     ///< make probe profiles
   bool phases = true;       ///< make phase scans (needs RF and a fundamental-harmonic cavity)
+  /// The bunch's own field in the profiles' tracking, at the beam current wire.current_uA (the
+  /// phase scans track single particles: no space charge there).
+  bool space_charge = false;
+  sc::SpaceChargeSettings sc;  ///< grid, interval, halo cut (its current is wire.current_uA)
 };
 
 /// One probe's synthetic measurement.

@@ -38,7 +38,18 @@ void add_synth_options(CLI::App& app, SynthOptions& o) {
   app.add_option("--set", o.sets, "Set a design variable or JSON pointer: NAME=VALUE (repeatable)")->allow_extra_args(false);
   app.add_option("--dvars", o.dvars, "JSON file of design-variable values");
   app.add_option("-o,--out", o.out, "Output folder (created if missing)");
-  app.add_option("--current-uA", o.wire.current_uA, "Beam current [uA]")->check(CLI::Range(1e-6, 1e5))->capture_default_str();
+  app.add_option("--current-uA", o.wire.current_uA,
+                 "Beam current [uA]: the wire signal's scale and, with space charge, the bunch charge (default: the "
+                 "machine's space_charge.current_uA, else 88)")
+      ->check(CLI::Range(1e-6, 1e5))
+      ->each([&o](const std::string&) { o.current_given = true; });
+  app.add_flag("--space-charge", o.space_charge,
+               "Track the profiles' bunch with its own field at --current-uA (on by itself for a machine with a "
+               "space_charge block)");
+  app.add_flag("--no-space-charge", o.no_space_charge, "No space charge, even if the machine has a space_charge block");
+  app.add_option("--sc-grid", o.sc_grid, "Space-charge grid points, radial x vertical x longitudinal (default 32x32x32)");
+  app.add_option("--sc-every", o.sc_every, "One space-charge solve every K integration steps (default 1)")
+      ->check(CLI::Range(1, 100000));
   app.add_option("--particles", o.particles, "Bunch size (default: the machine's bunch.particles, else 2000)")
       ->check(CLI::Range(1, 100000000));
   app.add_option("--turns", o.turns, "Revolutions to track (default: the machine's tracking.turns)")->check(CLI::Range(0.0, 1e6));
@@ -174,6 +185,11 @@ nlohmann::json truth_json(const Machine& truth, const SynthSettings& s, const Sy
   j["machine"] = truth.path;
   j["seed"] = s.seed;
   j["current_uA"] = s.wire.current_uA;
+  if (s.space_charge)
+    j["space_charge"] = {{"current_uA", s.wire.current_uA},
+                         {"grid", {s.sc.grid.nx, s.sc.grid.ny, s.sc.grid.nz}},
+                         {"every_steps", s.sc.every_steps},
+                         {"halo_sigma", s.sc.halo_sigma}};
   j["particles"] = r.particles;
   j["lost"] = r.lost;
   json dv = json::object();
@@ -277,6 +293,17 @@ int run_synth(const SynthOptions& o) {
   s.seed = o.common.seed;
   s.threads = cli::resolve_threads(o.common.threads);
   s.wire = o.wire;
+  if (o.space_charge && o.no_space_charge) throw usage_error("--space-charge with --no-space-charge: choose one");
+  s.space_charge = !o.no_space_charge && (o.space_charge || m.space_charge);
+  if ((!o.sc_grid.empty() || o.sc_every > 0) && !s.space_charge)
+    throw usage_error("--sc-grid and --sc-every set space charge: add --space-charge (or a space_charge block in the "
+                      "machine)");
+  if (m.space_charge) s.sc = sc::settings_of(*m.space_charge);
+  if (!o.sc_grid.empty()) s.sc.grid = sc::parse_grid(o.sc_grid);
+  if (o.sc_every > 0) s.sc.every_steps = o.sc_every;
+  if (!o.current_given && m.space_charge && m.space_charge->current_uA > 0) s.wire.current_uA = m.space_charge->current_uA;
+  if (s.space_charge && o.no_profiles)
+    throw usage_error("space charge acts on the profiles' bunch: not with --no-profiles");
   const SynthPreset models = synth_models(o);
   s.drift = models.drift;
   s.scan = models.scan;

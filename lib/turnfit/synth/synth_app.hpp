@@ -34,6 +34,11 @@ struct SynthOptions {
   bool no_phase = false;
   bool reference_stepper = false;  ///< track with the reference stepper (checks, benchmarks)
   bool no_profiles = false;
+  bool current_given = false;      ///< --current-uA was given (else the machine's space_charge current, else 88)
+  bool space_charge = false;       ///< --space-charge
+  bool no_space_charge = false;    ///< --no-space-charge
+  std::string sc_grid;             ///< --sc-grid (empty: the machine's or 32^3)
+  int sc_every = 0;                ///< --sc-every (0: the machine's or 1)
 };
 
 /// Registers turnfit-synth's options.

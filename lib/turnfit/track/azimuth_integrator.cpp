@@ -12,6 +12,7 @@
 #include <limits>
 #include <memory>
 
+#include "turnfit/io/error.hpp"
 #include "turnfit/physics/azimuth_eom.hpp"
 #include "turnfit/track/integrators.hpp"
 
@@ -521,6 +522,110 @@ void group_step(AzParticle* const* L, int n, double th, double h, int j0, const 
   }
 }
 
+
+/// The group stepper's run over up to kMaxLanes particles that start at one azimuth on one map,
+/// a grid node at a time (step_node), so that a caller may act on the lanes between nodes (the
+/// space-charge driver kicks them there). Run node by node to the end, it is the group stepper.
+struct GroupRun {
+  std::vector<std::unique_ptr<AzParticle>> lane;
+  GroupOutput* out;
+  std::shared_ptr<const FieldRowTable> tab;
+  StageCells sc{};
+  long long cells_per_step = 1;
+  int nt = 0;
+  double dnode = 0, node0 = 0;
+  std::vector<std::unique_ptr<TermCache>> caches;
+  TermCache* lane_cache[kMaxLanes];
+  double th = 0, th_end = 0;
+
+  GroupRun(const TrackModel* const* ms, const ParticleState* s0, size_t n, const TrackSettings& st, GroupOutput* o)
+      : out(o) {
+    const TrackModel& m = *ms[0];
+    for (size_t l = 0; l < n; ++l) {
+      lane.push_back(std::make_unique<AzParticle>(*ms[l], s0[l], st, out[l].turns, out[l].kicks, out[l].path));
+      lane.back()->landing_tol = 1e-12;
+    }
+    const PolarGrid& g = m.map.grid();
+    const double cell = g.dtheta_rad();
+    dnode = lane[0]->dnode;
+    node0 = lane[0]->node0;
+    const double cells = dnode / cell;
+    // The row table serves steps of whole cells of the spline map (OPAL's bilinear map and
+    // fractions of a cell sample the reference way).
+    if (!m.opal_map && cells > 0.5 && std::fabs(cells - std::round(cells)) < 1e-9) {
+      cells_per_step = static_cast<int>(std::round(cells));
+      sc = stage_cells(static_cast<int>(cells_per_step));
+      tab = m.map.row_table(sc.v);
+    }
+    nt = g.ntheta;
+    // One cache of azimuth terms per model (the harmonics are the model's).
+    std::vector<const TrackModel*> cached;
+    for (size_t l = 0; l < n; ++l) {
+      const size_t c = static_cast<size_t>(std::find(cached.begin(), cached.end(), ms[l]) - cached.begin());
+      if (c == cached.size()) {
+        cached.push_back(ms[l]);
+        caches.push_back(std::make_unique<TermCache>(*ms[l], node0, dnode));
+      }
+      lane_cache[l] = caches[c].get();
+    }
+    th = lane[0]->th;
+    th_end = lane[0]->th_end;
+  }
+
+  bool running() const { return th < th_end - 1e-13; }
+
+  /// Takes every lane to the next grid node (or the end); false when the run had ended.
+  bool step_node() {
+    if (!running()) return false;
+    TermCache* group_cache[kMaxLanes];
+    AzParticle* group[kMaxLanes];
+    bool ok[kMaxLanes];
+    const double stop = lane[0]->node_stop(th);
+    // A whole grid step from a node: the row table's azimuths.
+    const bool grid_step = tab && std::fabs(stop - th - dnode) < 1e-9 * dnode;
+    int ng = 0;
+    // Each lane runs the reference's iterations (AzParticle::node_stop, next_event, a step,
+    // landing) up to this node; the whole grid step from the group's node, without an element
+    // in it, it takes with the group. A lane that landed within rounding of the node or past
+    // it goes on from there next time, as alone it would.
+    for (auto& p : lane) {
+      while (p->running()) {
+        double s = p->node_stop(p->th);
+        if (s > stop) break;
+        const int which = p->next_event(s);
+        if (which < 0 && grid_step && p->th == th) {
+          group_cache[ng] = lane_cache[&p - lane.data()];
+          group[ng++] = p.get();
+          break;
+        }
+        if (!p->step_to(s) || (which >= 0 && !p->land_and_act(which))) break;
+      }
+    }
+    if (ng > 0) {
+      // The node's index, and the cell it starts (th is within rounding of a node).
+      const long long node = static_cast<long long>(std::floor((th - node0) / dnode + 0.5));
+      int j0 = static_cast<int>((node * cells_per_step) % nt);
+      if (j0 < 0) j0 += nt;
+      group_step(group, ng, th, stop - th, j0, sc, *tab, group_cache, node, ok);
+      for (int l = 0; l < ng; ++l) {
+        AzParticle& p = *group[l];
+        if (!ok[l]) {
+          p.left_map(stop - th);
+          continue;
+        }
+        p.th = stop;
+        p.record_path();
+      }
+    }
+    th = stop;
+    return true;
+  }
+
+  void finish() {
+    for (size_t l = 0; l < lane.size(); ++l) *out[l].end = lane[l]->finish();
+  }
+};
+
 }  // namespace
 
 TrackEnd track_azimuth(const TrackModel& m, const ParticleState& s0, const TrackSettings& st,
@@ -582,83 +687,83 @@ void track_azimuth_group(const TrackModel* const* ms, const ParticleState* s0, s
     }
     return;
   }
-  std::vector<std::unique_ptr<AzParticle>> lane;
-  for (size_t l = 0; l < n; ++l) {
-    lane.push_back(std::make_unique<AzParticle>(*ms[l], s0[l], st, out[l].turns, out[l].kicks, out[l].path));
-    lane.back()->landing_tol = 1e-12;
+  GroupRun run(ms, s0, n, st, out);
+  while (run.step_node()) {
   }
-  const PolarGrid& g = m.map.grid();
-  const double cell = g.dtheta_rad(), dnode = lane[0]->dnode, node0 = lane[0]->node0;
-  const double cells = dnode / cell;
-  // The row table serves steps of whole cells of the spline map (OPAL's bilinear map and
-  // fractions of a cell sample the reference way).
-  std::shared_ptr<const FieldRowTable> tab;
-  StageCells sc{};
-  long long cells_per_step = 1;
-  if (!m.opal_map && cells > 0.5 && std::fabs(cells - std::round(cells)) < 1e-9) {
-    cells_per_step = static_cast<int>(std::round(cells));
-    sc = stage_cells(cells_per_step);
-    tab = m.map.row_table(sc.v);
-  }
-  const int nt = g.ntheta;
-  // One cache of azimuth terms per model (the harmonics are the model's).
-  std::vector<std::unique_ptr<TermCache>> caches;
-  std::vector<const TrackModel*> cached;
-  TermCache* lane_cache[kMaxLanes];
-  for (size_t l = 0; l < n; ++l) {
-    const size_t c = static_cast<size_t>(std::find(cached.begin(), cached.end(), ms[l]) - cached.begin());
-    if (c == cached.size()) {
-      cached.push_back(ms[l]);
-      caches.push_back(std::make_unique<TermCache>(*ms[l], node0, dnode));
-    }
-    lane_cache[l] = caches[c].get();
-  }
-  TermCache* group_cache[kMaxLanes];
-  AzParticle* group[kMaxLanes];
-  bool ok[kMaxLanes];
-  double th = lane[0]->th;
-  const double th_end = lane[0]->th_end;
-  while (th < th_end - 1e-13) {
-    const double stop = lane[0]->node_stop(th);
-    // A whole grid step from a node: the row table's azimuths.
-    const bool grid_step = tab && std::fabs(stop - th - dnode) < 1e-9 * dnode;
-    int ng = 0;
-    // Each lane runs the reference's iterations (AzParticle::node_stop, next_event, a step,
-    // landing) up to this node; the whole grid step from the group's node, without an element
-    // in it, it takes with the group. A lane that landed within rounding of the node or past
-    // it goes on from there next time, as alone it would.
-    for (auto& p : lane) {
-      while (p->running()) {
-        double s = p->node_stop(p->th);
-        if (s > stop) break;
-        const int which = p->next_event(s);
-        if (which < 0 && grid_step && p->th == th) {
-          group_cache[ng] = lane_cache[&p - lane.data()];
-          group[ng++] = p.get();
-          break;
-        }
-        if (!p->step_to(s) || (which >= 0 && !p->land_and_act(which))) break;
-      }
-    }
-    if (ng > 0) {
-      // The node's index, and the cell it starts (th is within rounding of a node).
-      const long long node = static_cast<long long>(std::floor((th - node0) / dnode + 0.5));
-      int j0 = static_cast<int>((node * cells_per_step) % nt);
-      if (j0 < 0) j0 += nt;
-      group_step(group, ng, th, stop - th, j0, sc, *tab, group_cache, node, ok);
-      for (int l = 0; l < ng; ++l) {
-        AzParticle& p = *group[l];
-        if (!ok[l]) {
-          p.left_map(stop - th);
-          continue;
-        }
-        p.th = stop;
-        p.record_path();
-      }
-    }
-    th = stop;
-  }
-  for (size_t l = 0; l < n; ++l) *out[l].end = lane[l]->finish();
+  run.finish();
 }
+
+struct AzimuthGroupRun::Impl {
+  std::vector<const TrackModel*> models;
+  GroupRun run;
+  Impl(const TrackModel& m, const ParticleState* s0, size_t n, const TrackSettings& st, GroupOutput* out)
+      : models(n, &m), run(models.data(), s0, n, st, out) {}
+};
+
+AzimuthGroupRun::AzimuthGroupRun(const TrackModel& m, const ParticleState* s0, size_t n, const TrackSettings& st,
+                                 GroupOutput* out) {
+  if (n == 0 || n > static_cast<size_t>(kMaxLanes))
+    throw Error(ExitCode::software, "AzimuthGroupRun: " + std::to_string(n) + " lanes (1 to " +
+                                 std::to_string(kMaxLanes) + ")");
+  const double th0 = AzParticle::start_azimuth(s0[0]);
+  for (size_t l = 1; l < n; ++l)
+    if (AzParticle::start_azimuth(s0[l]) != th0)
+      throw Error(ExitCode::software, "AzimuthGroupRun: particles that start at different azimuths");
+  impl_ = std::make_unique<Impl>(m, s0, n, st, out);
+}
+AzimuthGroupRun::~AzimuthGroupRun() = default;
+AzimuthGroupRun::AzimuthGroupRun(AzimuthGroupRun&&) noexcept = default;
+AzimuthGroupRun& AzimuthGroupRun::operator=(AzimuthGroupRun&&) noexcept = default;
+
+bool AzimuthGroupRun::advance(long nodes) {
+  bool any = false;
+  for (long k = 0; k < nodes && impl_->run.step_node(); ++k) any = true;
+  return any;
+}
+bool AzimuthGroupRun::running() const { return impl_->run.running(); }
+double AzimuthGroupRun::azimuth() const { return impl_->run.th; }
+double AzimuthGroupRun::end_azimuth() const { return impl_->run.th_end; }
+double AzimuthGroupRun::azimuth_after(long nodes) const {
+  // step_node's stops, without the steps.
+  const GroupRun& r = impl_->run;
+  double th = r.th;
+  for (long k = 0; k < nodes && th < r.th_end - 1e-13; ++k) th = r.lane[0]->node_stop(th);
+  return th;
+}
+size_t AzimuthGroupRun::size() const { return impl_->run.lane.size(); }
+
+bool AzimuthGroupRun::lane(size_t l, LaneState& s) const {
+  const AzParticle& p = *impl_->run.lane[l];
+  if (!p.running()) return false;
+  const double r = p.y[0], c = std::cos(p.th), sn = std::sin(p.th);
+  const double sxy = std::sqrt(std::max(0.0, 1 - p.y[1] * p.y[1] - p.y[3] * p.y[3]));
+  s.s.x = r * c;
+  s.s.y = r * sn;
+  s.s.z = p.y[2];
+  s.s.px = p.P * (p.y[1] * c - sxy * sn);
+  s.s.py = p.P * (p.y[1] * sn + sxy * c);
+  s.s.pz = p.P * p.y[3];
+  s.s.t = p.y[4];
+  s.dt_dtheta = sxy > 0 ? r / sxy * p.f.inv_v : 0.0;
+  return true;
+}
+
+void AzimuthGroupRun::kick(size_t l, double dpx, double dpy, double dpz) {
+  AzParticle& p = *impl_->run.lane[l];
+  // (No kick leaves the state untouched, bit for bit: a run without a force is the group stepper's.)
+  if (!p.running() || (dpx == 0 && dpy == 0 && dpz == 0)) return;
+  // As a gap's kick (AzParticle::land_and_act): the new momentum's magnitude and its radial and
+  // vertical parts at the lane's azimuth.
+  const double c = std::cos(p.th), sn = std::sin(p.th);
+  const double sxy = std::sqrt(std::max(0.0, 1 - p.y[1] * p.y[1] - p.y[3] * p.y[3]));
+  const double px = p.P * (p.y[1] * c - sxy * sn) + dpx, py = p.P * (p.y[1] * sn + sxy * c) + dpy,
+               pz = p.P * p.y[3] + dpz;
+  p.P = std::sqrt(px * px + py * py + pz * pz);
+  p.y[1] = (px * c + py * sn) / p.P;
+  p.y[3] = pz / p.P;
+  p.set_momentum();
+}
+
+void AzimuthGroupRun::finish() { impl_->run.finish(); }
 
 }  // namespace turnfit::detail

@@ -14,6 +14,7 @@
 #include "turnfit/io/error.hpp"
 #include "turnfit/io/parallel.hpp"
 #include "turnfit/physics/particle.hpp"
+#include "turnfit/track/integrators.hpp"
 
 namespace turnfit {
 namespace {
@@ -461,9 +462,168 @@ CentroidTurns centroid_turns(const TrackModel& model, const ParticleState& refer
   return out;
 }
 
+namespace {
+
+/// The bunch's result from its chunks' sums (merged in chunk order) and the workers' histograms.
+BunchResult bunch_result(const TrackModel& model, size_t n, std::vector<Partial>& parts,
+                         std::vector<std::vector<ProbeHistogram>>& hists) {
+  Partial all;
+  all.acc.resize(model.probes.size());
+  for (auto& p : parts) merge_into(all, p);
+  std::vector<ProbeHistogram>& hist = hists[0];
+  for (size_t w = 1; w < hists.size(); ++w)
+    for (size_t p = 0; p < hist.size(); ++p) {
+      for (size_t k = 0; k < hist[p].counts.size(); ++k) hist[p].counts[k] += hists[w][p].counts[k];
+      hist[p].outside += hists[w][p].outside;
+    }
+
+  BunchResult res;
+  res.particles = n;
+  res.particle_turns = all.turns;
+  res.histograms = std::move(hist);
+  res.lost = std::move(all.lost);
+  for (size_t p = 0; p < all.acc.size(); ++p)
+    for (size_t k = 0; k < all.acc[p].size(); ++k) {
+      const Acc& a = all.acc[p][k];
+      if (a.n == 0) continue;
+      Centroid c;
+      c.probe = static_cast<int>(p);
+      c.turn = static_cast<int>(k + 1);
+      c.particles = a.n;
+      const double inv = 1.0 / static_cast<double>(a.n);
+      c.r_mm = a.r;
+      c.r_rms_mm = std::sqrt(std::max(0.0, a.m2 * inv));
+      c.s_mm = a.s * inv;
+      c.t_ns = a.t * inv;
+      c.energy_MeV = a.e * inv;
+      c.phase_deg = a.phase ? std::atan2(a.ps, a.pc) * 180 / kPi : std::nan("");
+      res.centroids.push_back(c);
+    }
+  std::stable_sort(res.centroids.begin(), res.centroids.end(),
+                   [](const Centroid& a, const Centroid& b) { return a.t_ns < b.t_ns; });
+  return res;
+}
+
+/// Adds a particle's records to its chunk's sums and its worker's histograms.
+void add_records(Partial& part, std::vector<ProbeHistogram>& hist, const std::vector<TurnRecord>& turns) {
+  for (const auto& tr : turns) {
+    auto& row = part.acc[static_cast<size_t>(tr.probe)];
+    if (row.size() < static_cast<size_t>(tr.turn)) row.resize(static_cast<size_t>(tr.turn));
+    row[static_cast<size_t>(tr.turn - 1)].add(tr);
+    add_crossing(hist, tr);
+  }
+}
+
+/// track_bunch with a collective kick: chunks of kChunk particles (one group run each) advance
+/// to the next kick node on the workers, the kick is computed from every running particle, and
+/// the workers apply it. A chunk's records are added to its sums after every advance, in lane
+/// order, so the sums do not depend on the thread count.
+BunchResult track_bunch_collective(const TrackModel& model, const std::vector<ParticleState>& starts,
+                                   const TrackSettings& settings, unsigned threads,
+                                   const std::function<void(size_t)>& progress, const CrossingSink& sink,
+                                   const CollectiveKick& ck) {
+  static_assert(kChunk <= static_cast<size_t>(detail::kMaxLanes), "a chunk is one group run");
+  if (settings.integrator != "azimuth" || settings.reference_stepper)
+    throw usage_error("collective forces (space charge) need the azimuth integrator's group stepper, not '" +
+                      settings.integrator + (settings.reference_stepper ? "' with the reference stepper" : "'"));
+  if (ck.every_nodes < 1) throw usage_error("collective kick interval must be at least one step");
+  const size_t n = starts.size(), nchunks = (n + kChunk - 1) / kChunk;
+  if (n == 0) {
+    std::vector<Partial> parts;
+    std::vector<std::vector<ProbeHistogram>> hists(1, empty_histograms(model));
+    return bunch_result(model, 0, parts, hists);
+  }
+  const double th0 = std::atan2(starts[0].y, starts[0].x);
+  for (size_t i = 1; i < n; ++i)
+    if (std::atan2(starts[i].y, starts[i].x) != th0)
+      throw usage_error("collective forces (space charge): particle " + std::to_string(i) +
+                        " starts at another azimuth than particle 0 (a bunch starts at one)");
+  const unsigned nt = std::max(1u, std::min<unsigned>(threads, static_cast<unsigned>(nchunks)));
+  std::vector<Partial> parts(nchunks);
+  std::vector<std::vector<ProbeHistogram>> hists(nt, empty_histograms(model));
+  std::vector<std::vector<TurnRecord>> turns(n);
+  std::vector<TrackEnd> ends(n);
+  std::vector<detail::GroupOutput> outs(n);
+  for (size_t i = 0; i < n; ++i) outs[i] = {&turns[i], nullptr, nullptr, &ends[i]};
+  std::vector<detail::AzimuthGroupRun> runs;
+  runs.reserve(nchunks);
+  for (size_t c = 0; c < nchunks; ++c) {
+    const size_t first = c * kChunk, count = std::min(n, first + kChunk) - first;
+    runs.emplace_back(model, starts.data() + first, count, settings, outs.data() + first);
+    parts[c].acc.resize(model.probes.size());
+  }
+  // The kick at a node stands for half the azimuth stepped since the last kick and half the
+  // azimuth to the next (a leapfrog with steps of every_nodes grid steps; the first and last
+  // intervals may be shorter, from the injection azimuth to the grid and to the end).
+  const double th_begin = runs[0].azimuth(), span = runs[0].end_azimuth() - th_begin;
+  std::vector<size_t> index;
+  std::vector<LaneState> states;
+  std::vector<double> dp;
+  std::vector<std::vector<size_t>> where(nchunks);  // per chunk: lane -> place in index (or none)
+  const size_t none = static_cast<size_t>(-1);
+  double before = 0;  // azimuth stepped since the last kick
+  while (runs[0].running()) {
+    index.clear();
+    states.clear();
+    for (size_t c = 0; c < nchunks; ++c) {
+      where[c].assign(runs[c].size(), none);
+      for (size_t l = 0; l < runs[c].size(); ++l) {
+        LaneState ls;
+        if (!runs[c].lane(l, ls)) continue;
+        where[c][l] = index.size();
+        index.push_back(c * kChunk + l);
+        states.push_back(ls);
+      }
+    }
+    if (index.empty()) break;
+    const double th = runs[0].azimuth(), after = runs[0].azimuth_after(ck.every_nodes) - th;
+    dp.assign(3 * index.size(), 0.0);
+    ck.kick(th, 0.5 * (before + after), index, states, dp);
+    parallel_for(nchunks, nt, [&](size_t c, unsigned w) {
+      detail::AzimuthGroupRun& run = runs[c];
+      for (size_t l = 0; l < run.size(); ++l) {
+        const size_t k = where[c][l];
+        if (k != none) run.kick(l, dp[3 * k], dp[3 * k + 1], dp[3 * k + 2]);
+      }
+      run.advance(ck.every_nodes);
+      if (sink) return;  // the records stay with their particles until the end
+      for (size_t l = 0; l < run.size(); ++l) {
+        std::vector<TurnRecord>& t = turns[c * kChunk + l];
+        add_records(parts[c], hists[w], t);
+        t.clear();
+      }
+    });
+    before = runs[0].azimuth() - th;
+    if (progress && span > 0)
+      progress(static_cast<size_t>(static_cast<double>(n) * std::min(1.0, (runs[0].azimuth() - th_begin) / span)));
+  }
+  // Runs whose particles were all lost stop where they are; the others are at the end.
+  parallel_for(nchunks, nt, [&](size_t c, unsigned w) {
+    detail::AzimuthGroupRun& run = runs[c];
+    while (run.advance(1 << 20)) {
+    }
+    run.finish();
+    for (size_t l = 0; l < run.size(); ++l) {
+      const size_t i = c * kChunk + l;
+      add_records(parts[c], hists[w], turns[i]);
+      parts[c].turns += ends[i].turns;
+      if (ends[i].lost) parts[c].lost.emplace_back(i, ends[i]);
+    }
+  });
+  if (sink)
+    for (size_t i = 0; i < n; ++i) sink(i, turns[i]);
+  if (progress) progress(n);
+  return bunch_result(model, n, parts, hists);
+}
+
+}  // namespace
+
 BunchResult track_bunch(const TrackModel& model, const std::vector<ParticleState>& starts,
                         const TrackSettings& settings, unsigned threads,
-                        const std::function<void(size_t)>& progress, const CrossingSink& sink) {
+                        const std::function<void(size_t)>& progress, const CrossingSink& sink,
+                        const CollectiveKick* collective) {
+  if (collective && collective->kick)
+    return track_bunch_collective(model, starts, settings, threads, progress, sink, *collective);
   const size_t n = starts.size(), nchunks = (n + kChunk - 1) / kChunk;
   std::vector<Partial> parts(nchunks);
   const unsigned nt = std::max(1u, std::min<unsigned>(threads, static_cast<unsigned>(std::max<size_t>(nchunks, 1))));
@@ -500,41 +660,7 @@ BunchResult track_bunch(const TrackModel& model, const std::vector<ParticleState
     if (progress) progress(d);
   });
 
-  Partial all;
-  all.acc.resize(model.probes.size());
-  for (auto& p : parts) merge_into(all, p);
-  std::vector<ProbeHistogram>& hist = hists[0];
-  for (unsigned w = 1; w < nt; ++w)
-    for (size_t p = 0; p < hist.size(); ++p) {
-      for (size_t k = 0; k < hist[p].counts.size(); ++k) hist[p].counts[k] += hists[w][p].counts[k];
-      hist[p].outside += hists[w][p].outside;
-    }
-
-  BunchResult res;
-  res.particles = n;
-  res.particle_turns = all.turns;
-  res.histograms = std::move(hist);
-  res.lost = std::move(all.lost);
-  for (size_t p = 0; p < all.acc.size(); ++p)
-    for (size_t k = 0; k < all.acc[p].size(); ++k) {
-      const Acc& a = all.acc[p][k];
-      if (a.n == 0) continue;
-      Centroid c;
-      c.probe = static_cast<int>(p);
-      c.turn = static_cast<int>(k + 1);
-      c.particles = a.n;
-      const double inv = 1.0 / static_cast<double>(a.n);
-      c.r_mm = a.r;
-      c.r_rms_mm = std::sqrt(std::max(0.0, a.m2 * inv));
-      c.s_mm = a.s * inv;
-      c.t_ns = a.t * inv;
-      c.energy_MeV = a.e * inv;
-      c.phase_deg = a.phase ? std::atan2(a.ps, a.pc) * 180 / kPi : std::nan("");
-      res.centroids.push_back(c);
-    }
-  std::stable_sort(res.centroids.begin(), res.centroids.end(),
-                   [](const Centroid& a, const Centroid& b) { return a.t_ns < b.t_ns; });
-  return res;
+  return bunch_result(model, n, parts, hists);
 }
 
 }  // namespace turnfit

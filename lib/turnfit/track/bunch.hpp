@@ -141,12 +141,31 @@ struct BunchResult {
 /// callers that need more than centroids and histograms (turnfit-synth's wire signals).
 using CrossingSink = std::function<void(size_t particle, const std::vector<TurnRecord>& turns)>;
 
+/// What acts on a bunch's particles together (space charge: spacecharge/space_charge.hpp). The
+/// particles are stepped in azimuth together, and every `every_nodes` grid nodes of the azimuth
+/// integrator (and once at the start) `kick` is given the states of the particles still running
+/// (`index` their places in the bunch, `states` theirs, all at one azimuth `theta_rad`) and the
+/// azimuth `dtheta_rad` the kick stands for; it writes each one's momentum change dp[3 i ..
+/// 3 i + 2] [m c, lab x y z]. (The kick at the start stands for half an interval, the others for
+/// a whole one: kick, step, kick, as a leapfrog.)
+struct CollectiveKick {
+  long every_nodes = 1;
+  std::function<void(double theta_rad, double dtheta_rad, const std::vector<size_t>& index,
+                      const std::vector<LaneState>& states, std::vector<double>& dp)>
+      kick;
+};
+
 /// Tracks every start state on `threads` threads. Results do not depend on the thread count
 /// (particles are reduced in fixed chunks, merged in order). `progress`, if given, is called
 /// from worker threads with the number of particles done. `sink`, if given, is called from
 /// worker threads, concurrently for different particles, once per particle.
+/// With `collective` (and its kick set), the particles go through the azimuth integrator's grid
+/// nodes together and are kicked between them (EX_USAGE for another integrator or the reference
+/// stepper; every start must be at one azimuth, as a bunch's are); its records are reduced as
+/// they come, so memory does not grow with the turns unless a sink keeps them.
 BunchResult track_bunch(const TrackModel& model, const std::vector<ParticleState>& starts,
                         const TrackSettings& settings, unsigned threads,
-                        const std::function<void(size_t)>& progress = {}, const CrossingSink& sink = {});
+                        const std::function<void(size_t)>& progress = {}, const CrossingSink& sink = {},
+                        const CollectiveKick* collective = nullptr);
 
 }  // namespace turnfit

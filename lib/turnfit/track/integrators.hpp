@@ -4,6 +4,7 @@
 #include <cmath>
 #include <cstdio>
 #include <limits>
+#include <memory>
 #include <string>
 #include <vector>
 
@@ -58,6 +59,40 @@ void track_azimuth_group(const TrackModel& m, const ParticleState* s0, size_t n,
 /// together, each with its own coils, effects, gaps and probes.
 void track_azimuth_group(const TrackModel* const* ms, const ParticleState* s0, size_t n, const TrackSettings& st,
                          GroupOutput* out);
+
+
+/// The group stepper's run (track_azimuth_group) over up to kMaxLanes particles of one model
+/// that start at one azimuth, a grid node at a time, so that a caller can act on the lanes
+/// between nodes: the space-charge driver kicks them there. Every run of a bunch passes the same
+/// nodes (the map's grid from the injection azimuth), so runs advanced node for node stay in
+/// step. Run to the end without kicks, each lane's records are track_azimuth_group's, bit for bit.
+class AzimuthGroupRun {
+ public:
+  /// EX_SOFTWARE if n is 0 or over kMaxLanes, or the particles start at different azimuths.
+  AzimuthGroupRun(const TrackModel& m, const ParticleState* s0, size_t n, const TrackSettings& st, GroupOutput* out);
+  ~AzimuthGroupRun();
+  AzimuthGroupRun(AzimuthGroupRun&&) noexcept;
+  AzimuthGroupRun& operator=(AzimuthGroupRun&&) noexcept;
+  /// Takes every lane up to `nodes` grid nodes further; false once the run has ended.
+  bool advance(long nodes);
+  bool running() const;
+  /// The node azimuth the run is at (unwrapped, rad).
+  double azimuth() const;
+  /// The azimuth advance(nodes) would take the run to (the end at most), and the end's.
+  double azimuth_after(long nodes) const;
+  double end_azimuth() const;
+  size_t size() const;
+  /// Lane l's state; false (s untouched) when the lane was lost or has ended.
+  bool lane(size_t l, LaneState& s) const;
+  /// Adds (dpx, dpy, dpz) [m c] to lane l's momentum at its place (a running lane only).
+  void kick(size_t l, double dpx, double dpy, double dpz);
+  /// Writes each lane's end (GroupOutput::end).
+  void finish();
+
+ private:
+  struct Impl;
+  std::unique_ptr<Impl> impl_;
+};
 
 /// RK4 in time with a fixed number of steps per turn (OPAL-cycl's scheme).
 TrackEnd track_time(const TrackModel& m, const ParticleState& s0, const TrackSettings& st,

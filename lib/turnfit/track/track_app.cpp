@@ -11,6 +11,7 @@
 #include "turnfit/io/error.hpp"
 #include "turnfit/io/output.hpp"
 #include "turnfit/machine/machine.hpp"
+#include "turnfit/spacecharge/space_charge.hpp"
 
 namespace turnfit {
 
@@ -49,6 +50,15 @@ void add_track_options(CLI::App& app, TrackOptions& o) {
                "--bunch FILE), as a turn-pattern problem predicts what a probe measures");
   app.add_option("--histograms", o.histograms, "Write a probe profile per probe (DIR/<probe>.csv) of the bunch");
   app.add_option("--orbit", o.orbit, "Write the particle's path after every step (CSV; the reference particle of a bunch)");
+  app.add_flag("--space-charge", o.space_charge,
+               "The bunch's own field (particle-in-cell, turnfit-track(1)), with the machine's space_charge block or "
+               "--current-uA");
+  app.add_flag("--no-space-charge", o.no_space_charge, "No space charge, even if the machine has a space_charge block");
+  app.add_option("--current-uA", o.current_uA, "Beam current for --space-charge [uA] (bunch charge: current / f_rf)");
+  app.add_option("--sc-grid", o.sc_grid, "Space-charge grid points, radial x vertical x longitudinal (default 32x32x32)");
+  app.add_option("--sc-every", o.sc_every, "One space-charge solve every K integration steps (default 1)")
+      ->check(CLI::Range(1, 100000));
+  app.add_flag("--sc-timing", o.sc_timing, "Print where the space-charge time went (deposit, FFT, gather) on stderr");
   cli::add_common_options(app, o.common, cli::kOutput | cli::kThreads | cli::kSeed);
 }
 
@@ -198,6 +208,36 @@ int run_track(const TrackOptions& o) {
   if (o.centroid && o.particles > 0) throw usage_error("--centroid computes the centre without a bunch: not with --particles");
   if (o.centroid && (!o.kicks.empty() || !o.histograms.empty() || !o.orbit.empty()))
     throw usage_error("--centroid writes the bunch's centre only: not with --kicks, --histograms or --orbit");
+  // Space charge: the machine's block or --space-charge, unless --no-space-charge.
+  if (o.space_charge && o.no_space_charge) throw usage_error("--space-charge with --no-space-charge: choose one");
+  const bool sc_on = !o.no_space_charge && (o.space_charge || m.space_charge);
+  const bool sc_option = o.current_uA >= 0 || !o.sc_grid.empty() || o.sc_every > 0;
+  if (o.current_uA < 0 && o.current_uA != -1)
+    throw usage_error("--current-uA must be >= 0, got " + cli::fmt(o.current_uA));
+  if (sc_option && !sc_on)
+    throw usage_error(o.no_space_charge ? "--current-uA, --sc-grid and --sc-every go with space charge, not with "
+                                          "--no-space-charge"
+                                        : "--current-uA, --sc-grid and --sc-every set space charge: add --space-charge "
+                                          "(or a space_charge block in the machine)");
+  sc::SpaceChargeSettings scs = m.space_charge ? sc::settings_of(*m.space_charge) : sc::SpaceChargeSettings{};
+  if (sc_on) {
+    if (o.current_uA >= 0) scs.current_uA = o.current_uA;
+    else if (!m.space_charge)
+      throw usage_error("--space-charge needs a beam current: --current-uA I (or space_charge.current_uA in the machine)");
+    if (!o.sc_grid.empty()) scs.grid = sc::parse_grid(o.sc_grid);
+    if (o.sc_every > 0) scs.every_steps = o.sc_every;
+    // Asked for here, space charge without a bunch is an error; a machine's block only leaves
+    // the single particle (or the quadrature) as it is, with a warning.
+    if ((!bunch || o.centroid) && (o.space_charge || sc_option))
+      throw usage_error("space charge is the field of a bunch's particles on each other: it needs a bunch "
+                        "(--particles N or --bunch FILE" +
+                        std::string(o.centroid ? "), not --centroid's quadrature" : ")"));
+  }
+  const bool sc_run = sc_on && bunch && !o.centroid;
+  if (sc_on && !sc_run)
+    cli::warn(o.common, "the machine's space_charge block acts on a bunch (--particles N): " +
+                            std::string(o.centroid ? "the quadrature is tracked without it"
+                                                   : "one particle is tracked without it"));
   if (o.centroid) {
     const std::vector<QuadratureNode> nodes = machine_bunch_quadrature(m, o.bunch);
     if (nodes.empty())
@@ -283,10 +323,20 @@ int run_track(const TrackOptions& o) {
       std::vector<TurnRecord> unused;
       track_particle(model, reference, st, unused, nullptr, &path);
     }
-    BunchResult res = track_bunch(model, starts, st, cli::resolve_threads(o.common.threads), progress);
+    // A current of 0 is no space charge: the run without it, byte for byte.
+    std::unique_ptr<sc::SpaceChargeKick> sck;
+    CollectiveKick ck;
+    if (sc_run && scs.current_uA > 0) {
+      sck = std::make_unique<sc::SpaceChargeKick>(model, scs, starts.size(), cli::resolve_threads(o.common.threads));
+      ck = sck->collective();
+    }
+    BunchResult res = track_bunch(model, starts, st, cli::resolve_threads(o.common.threads), progress, {},
+                                  sck ? &ck : nullptr);
     if (show) std::fprintf(stderr, "\r\033[K");
+    if (sck && o.sc_timing) std::fprintf(stderr, "turnfit-track: %s\n", sc::timing_text(sck->stats()).c_str());
     OutputFile out(o.common.output);
     write_bunch_csv(out.stream(), model, res, !o.common.no_provenance);
+    if (sck) out.stream() << sc::stats_comment(scs, sck->stats());
     open_histograms(res.histograms, res.particles);
     open_orbit();
     out.commit();

@@ -32,6 +32,12 @@ struct TrackOptions {
   bool centroid = false;         ///< --centroid: the bunch's centre by quadrature, not the reference particle
   std::string histograms;        ///< --histograms DIR: one probe profile per probe
   std::string orbit;             ///< --orbit FILE: the (reference) particle's path, every step
+  bool space_charge = false;     ///< --space-charge: the bunch's own field (the machine's block or defaults)
+  bool no_space_charge = false;  ///< --no-space-charge: none, even with the machine's block
+  double current_uA = -1;        ///< --current-uA (negative: not given)
+  std::string sc_grid;           ///< --sc-grid NxNxN (empty: the machine's or 32^3)
+  int sc_every = 0;              ///< --sc-every K (0: the machine's or 1)
+  bool sc_timing = false;        ///< --sc-timing: the solver's time split on stderr
 };
 
 /// Registers turnfit-track's options.

@@ -18,6 +18,12 @@ struct ParticleState {
   double t = 0;
 };
 
+/// A particle's state at a node of a collective run (bunch.hpp's CollectiveKick).
+struct LaneState {
+  ParticleState s;        ///< position [m], momentum (beta gamma), time [s]
+  double dt_dtheta = 0;   ///< time per radian of azimuth [s]: r / (v p_theta / p)
+};
+
 /// One crossing of a probe, as turns.csv records it.
 struct TurnRecord {
   int probe = 0;          ///< index into TrackModel::probes
