@@ -781,7 +781,7 @@ struct Importer {
 OpalImport import_opal(const std::string& text, const std::string& name, const std::string& in_dir,
                        const std::string& out_dir, double opal_version, bool check_files) {
   Input in(text, name, opal_version);
-  Importer imp{in, in_dir, opal_version, check_files, {}, {}};
+  Importer imp{in, in_dir, opal_version, check_files, {}, {}, {}, {}};
   imp.notes = in.notes();
   json m = imp.run();
   OpalImport out;
