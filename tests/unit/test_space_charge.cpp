@@ -8,6 +8,7 @@
 
 #include "../support.hpp"
 #include "turnfit/physics/particle.hpp"
+#include "turnfit/diagnose/current_dependence.hpp"
 #include "turnfit/spacecharge/space_charge.hpp"
 #include "turnfit/track/bunch.hpp"
 
@@ -247,4 +248,57 @@ TEST_CASE("space charge: bad settings are refused with their reason", "[spacecha
   ck.kick = [](double, double, const std::vector<size_t>&, const std::vector<LaneState>&, std::vector<double>&) {};
   CHECK(error_code([&] { track_bunch(b.model, b.starts, st, 1, {}, {}, &ck); }, &msg) == 64);
   CHECK_THAT(msg, Catch::Contains("azimuth integrator"));
+}
+
+TEST_CASE("space charge candidate: the current-dependent part is fitted, what all currents share is not",
+          "[spacecharge][diagnose]") {
+  // Two measurements of 150 turns: each has its own drift (two design variables with smooth
+  // signatures), both share a per-turn model error m (what does not change with the current),
+  // and noise 0.1 mm. The signature grows with the turn, as space charge's does.
+  std::mt19937_64 rng(11);
+  std::normal_distribution<double> g(0, 1);
+  const size_t M = 150, K = 2;
+  std::vector<std::vector<double>> sigma(K, std::vector<double>(M, 0.1)), sig(K), y(K);
+  std::vector<std::vector<std::vector<double>>> J(K);
+  std::vector<double> m(M);
+  for (size_t i = 0; i < M; ++i) m[i] = 0.5 * std::sin(0.37 * static_cast<double>(i)) + 0.002 * static_cast<double>(i);
+  const double currents[2] = {88, 1000};
+  for (size_t k = 0; k < K; ++k)
+    for (size_t i = 0; i < M; ++i) {
+      const double t = static_cast<double>(i) / M;
+      J[k].push_back({1.0, std::cos(2 * kPi * 1.3 * t) * (1 + t)});  // an offset and an oscillation
+      sig[k].push_back(-0.05 * currents[k] / 1000 * t * t);
+    }
+  auto measure = [&](double alpha, std::uint64_t seed) {
+    rng.seed(seed);
+    const double drift[2][2] = {{0.3, -0.2}, {-0.4, 0.5}};
+    for (size_t k = 0; k < K; ++k) {
+      y[k].assign(M, 0.0);
+      for (size_t i = 0; i < M; ++i)
+        y[k][i] = m[i] + drift[k][0] * J[k][i][0] + drift[k][1] * J[k][i][1] + alpha * sig[k][i] + 0.1 * g(rng);
+    }
+    return fit_current_dependence(y, sigma, J, sig);
+  };
+  // The model's space charge (alpha = 1: 0.045 mm between the currents at the last turn) is
+  // below this noise's detection limit (gain_at_one 1.1): alpha comes out as 2.5 +- 1.0, and 0
+  // without it, both within their errors.
+  const CurrentFit with = measure(1, 3);
+  const CurrentFit without = measure(0, 3);
+  INFO("with: alpha " << with.alpha << " +- " << with.alpha_sigma << " gain " << with.gain << " at one "
+                      << with.gain_at_one << "; without: alpha " << without.alpha << " gain " << without.gain);
+  CHECK(with.points == M);
+  CHECK(with.dof == M - 2 - 1);  // the second measurement's two drifts and alpha
+  // The detection limit does not depend on the data: (sum of the signature's difference left by
+  // the drifts)^2 / noise^2.
+  CHECK(with.gain_at_one == Approx(without.gain_at_one));
+  CHECK(std::fabs(with.alpha - 1) < 3 * with.alpha_sigma);
+  CHECK(std::fabs(without.alpha) < 3 * without.alpha_sigma);
+  // A large signature is found at its size; the shared error m and the drifts never are.
+  for (auto& k : sig)
+    for (double& v : k) v *= 40;
+  const CurrentFit big = measure(1, 5), none = measure(0, 5);
+  CHECK(big.alpha == Approx(1).margin(0.05));
+  CHECK(big.gain > 100);
+  CHECK(none.gain < 10);
+  CHECK(none.chi2_without / static_cast<double>(none.dof) == Approx(1).margin(0.3));
 }

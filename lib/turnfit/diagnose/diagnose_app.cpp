@@ -56,6 +56,13 @@ void add_diagnose_options(CLI::App& app, DiagnoseOptions& o) {
                  "DRIVE_MM or DRIVE_MM,CORR_MM (default corr 10 mm; overrides the problem's scan_noise; 0: the "
                  "turns independent)");
   app.add_option("--folds", o.settings.folds, "Interleaved held-out folds (default 5)")->check(CLI::Range(2, 50));
+  app.add_option("--measured-at", o.measured_at,
+                 "I=PEAKS[,PEAKS...]: the machine's turns measured at beam current I [uA] (repeatable; two or more "
+                 "make space charge a candidate, scored on what changes with the current)")
+      ->allow_extra_args(false);
+  app.add_option("--sc-particles", o.sc_particles, "Bunch tracked for the space-charge signature (default 2000)")
+      ->check(CLI::Range(16, 10000000));
+  app.add_option("--sc-grid", o.sc_grid, "Solver grid of the space-charge signature (default 16x16x16)");
   cli::add_common_options(app, o.common, cli::kOutput | cli::kThreads);
 }
 
@@ -165,9 +172,12 @@ std::string diagnosis_markdown(const TurnPatternProblem& p, const json& r) {
   if (v == "nothing-missing")
     md << ": after the fit of the design variables the residual is consistent with its noise, and no effect "
           "of the catalogue would gain enough to earn its parameters.";
-  else if (v == "missing-physics")
-    md << ": " << r["effects"].size() << " effect" << (r["effects"].size() == 1 ? "" : "s")
-       << " the model lacks, named below, modelled and refitted.";
+  else if (v == "missing-physics") {
+    const size_t n = r["effects"].size() +
+                     (r.contains("space_charge") && r["space_charge"]["verdict"] == "named" ? 1 : 0);
+    md << ": " << n << " effect" << (n == 1 ? "" : "s") << " the model lacks, named below"
+       << (r["effects"].empty() ? "." : ", modelled and refitted.");
+  }
   else
     md << ": the residual is significant, but no effect of the catalogue explains it. Where it lies is below.";
   md << "\n\n";
@@ -187,6 +197,16 @@ std::string diagnosis_markdown(const TurnPatternProblem& p, const json& r) {
        << " mm: every chi2 here is taken with the turns' whole covariance.";
   md << "\n\n";
 
+  if (r.contains("space_charge")) {
+    const json& c = r["space_charge"];
+    md << "## Space charge (measurements at " << c["measurements"].size() << " currents)\n\n**"
+       << c["verdict"].get<std::string>() << "**: " << c["reason"].get<std::string>() << ". The current-dependent "
+       << "part of the residual is alpha = " << num(c["alpha"], 3) << " +- " << num(c["alpha_sigma"], 2)
+       << " times the model's (the bunch's centroids with and without its own field, largest change "
+       << num(c["signature_max_mm"], 3) << " mm); chi2 gain " << num(c["gain"], 3) << " against the threshold "
+       << num(c["threshold"], 3) << "; the model's space charge alone would gain " << num(c["gain_at_model"], 3)
+       << ".\n\n";
+  }
   if (!r["effects"].empty()) {
     md << "## Missing physics\n\n";
     for (const auto& e : r["effects"]) {
@@ -437,8 +457,50 @@ int run_diagnose(const DiagnoseOptions& o) {
   if (!o.figures.empty() && std::filesystem::exists(o.figures) && !std::filesystem::is_directory(o.figures))
     throw usage_error("--figures: " + o.figures + " exists and is not a folder");
 
+  // Measurements at other currents, checked before the work.
+  std::vector<CurrentMeasurement> at_currents;
+  for (const std::string& a : o.measured_at) {
+    const size_t eq = a.find('=');
+    CurrentMeasurement cm;
+    size_t used = 0;
+    try {
+      cm.current_uA = std::stod(a.substr(0, eq), &used);
+    } catch (const std::exception&) {
+      used = std::string::npos;
+    }
+    if (eq == std::string::npos || used != eq || eq + 1 >= a.size() || !(cm.current_uA >= 0) ||
+        !std::isfinite(cm.current_uA))
+      throw usage_error("--measured-at '" + a + "': expected I=PEAKS, a current >= 0 in uA and a peaks file");
+    std::stringstream files(a.substr(eq + 1));
+    std::string f;
+    while (std::getline(files, f, ','))
+      if (!f.empty()) cm.peaks.push_back(f);
+    if (cm.peaks.empty()) throw usage_error("--measured-at '" + a + "': no peaks file");
+    for (const auto& path : cm.peaks)
+      if (!std::filesystem::exists(path)) throw open_error(path, "no such file");
+    at_currents.push_back(cm);
+  }
+  if (at_currents.size() == 1)
+    throw usage_error("--measured-at: one measurement has nothing to compare with (give two or more currents)");
+  if (!at_currents.empty() && o.problem == "-")
+    throw usage_error("--measured-at reads the problem file again for each measurement: not with a problem on stdin");
+  CurrentTestSettings cts;
+  cts.particles = static_cast<size_t>(o.sc_particles);
+  cts.grid = sc::parse_grid(o.sc_grid);
+  cts.threads = s.threads;
+  cts.margin = s.margin;
+
   const Diagnosis d = diagnose(*p, x0, s);
-  const json report = diagnosis_report(*p, d, o.start, !o.common.no_provenance);
+  json report = diagnosis_report(*p, d, o.start, !o.common.no_provenance);
+  if (!at_currents.empty()) {
+    if (s.log) s.log("space charge: the signature at " + std::to_string(at_currents.size()) + " currents");
+    const json pj = read_json(o.problem);
+    const std::string dir = std::filesystem::absolute(o.problem).parent_path().string();
+    const CurrentTest ct = space_charge_candidate(*p, pj, dir, d.x_base, at_currents, cts);
+    report["space_charge"] = ct.report;
+    // Named, space charge is missing physics whatever the single measurement showed.
+    if (ct.named && report["verdict"] != "missing-physics") report["verdict"] = "missing-physics";
+  }
 
   std::unique_ptr<OutputFile> rep = std::make_unique<OutputFile>(out_path);
   std::unique_ptr<OutputFile> md = o.markdown.empty() ? nullptr : std::make_unique<OutputFile>(o.markdown);
@@ -457,8 +519,14 @@ int run_diagnose(const DiagnoseOptions& o) {
   if (md) md->commit();
   rep->commit();
   if (!o.common.quiet) {
-    std::cerr << "turnfit-diagnose: " << d.verdict;
+    std::cerr << "turnfit-diagnose: " << report["verdict"].get<std::string>();
     for (const auto& e : d.effects) std::cerr << "; " << e["label"].get<std::string>();
+    if (report.contains("space_charge"))
+      std::cerr << "; space charge " << report["space_charge"]["verdict"].get<std::string>() << " (alpha "
+                << cli::fmt(report["space_charge"]["alpha"].get<double>(), 3) << " +- "
+                << cli::fmt(report["space_charge"]["alpha_sigma"].get<double>(), 2) << ", gain "
+                << cli::fmt(report["space_charge"]["gain"].get<double>(), 3) << " against "
+                << cli::fmt(report["space_charge"]["threshold"].get<double>(), 3) << ")";
     std::cerr << " (worst turn " << cli::fmt(d.before.linf_mm, 3) << " -> " << cli::fmt(d.after.linf_mm, 3)
               << " mm, chi2/dof " << cli::fmt(d.before.chi2_per_dof, 3) << " -> " << cli::fmt(d.after.chi2_per_dof, 3)
               << "; " << d.evaluations << " designs, " << cli::fmt(d.wall_s, 3) << " s)\n";

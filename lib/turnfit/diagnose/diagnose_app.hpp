@@ -7,6 +7,7 @@
 #include <string>
 
 #include "turnfit/cli/common.hpp"
+#include "turnfit/diagnose/current_dependence.hpp"
 #include "turnfit/diagnose/diagnose.hpp"
 
 namespace turnfit {
@@ -23,6 +24,11 @@ struct DiagnoseOptions {
   std::string figures;        ///< --figures: folder for the figures
   std::string scan_noise;     ///< --scan-noise DRIVE_MM[,CORR_MM]: the probe drive's correlated error (overrides the problem's)
   DiagnoseSettings settings;
+  /// --measured-at I=PEAKS (repeatable): the same machine measured at beam current I; two or
+  /// more make space charge a candidate (current_dependence.hpp).
+  std::vector<std::string> measured_at;
+  int sc_particles = 2000;    ///< --sc-particles: the bunch the signature tracks
+  std::string sc_grid = "16";  ///< --sc-grid: its solver grid
 };
 
 /// Registers turnfit-diagnose's options.

@@ -113,6 +113,8 @@ class TurnPatternProblem : public Problem {
   const ScanNoise& scan_noise() const { return scan_noise_; }
   /// Sets it (not while evaluations run).
   void set_scan_noise(const ScanNoise& s) { scan_noise_ = s; }
+  /// The tracking settings every simulation uses (the machine's, with the problem's turns).
+  const TrackSettings& track_settings() const { return settings_; }
   /// Tracks with the reference stepper (TrackSettings::reference_stepper): for benchmarks.
   void set_reference_stepper(bool on) { settings_.reference_stepper = on; }
   /// "centroid" (the measured bunch's centre: the reference particle plus the centroid shift)
