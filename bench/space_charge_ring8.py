@@ -32,7 +32,12 @@ def rows(path):
         return {(r["probe"], int(r["turn"])): r for r in csv.DictReader(l for l in f if not l.startswith("#"))}
 
 
+REUSE = False
+
+
 def run(cmd):
+    if REUSE:
+        return 0.0, ""
     t0 = time.time()
     p = subprocess.run(cmd, capture_output=True, text=True)
     if p.returncode != 0:
@@ -49,7 +54,10 @@ def main():
     ap.add_argument("--currents", default="88,1000,2200")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--out", default=os.path.join(ROOT, "build", "space-charge"))
+    ap.add_argument("--reuse", action="store_true", help="Summarize the runs already in --out instead of running them")
     a = ap.parse_args()
+    global REUSE
+    REUSE = a.reuse
     os.makedirs(a.out, exist_ok=True)
     track = os.path.join(a.bin, "turnfit-track")
     base = [track, RING8, "--turns", str(a.turns), "--no-provenance", "--threads", str(a.threads), "-q"]
@@ -72,18 +80,21 @@ def main():
                              "--sc-grid", a.grid, "--sc-timing", "-o", out])
         results[cur] = (out, t, err.strip())
     print()
-    print("| current uA | max abs centroid change mm | at turn | change at turns 50 / 100 / 150 / 182 mm "
-          "| width rms turn 182: without / with mm | time s | time / without |")
+    print("| current uA | max abs centroid change mm | at turn | change at turns 50 / 100 / 150 / last mm "
+          "| width rms, last complete turn: without / with mm | time s | time / without |")
     print("|---|---|---|---|---|---|---|")
     for cur, (out, t, err) in results.items():
         C = rows(out)
-        ks = [k for k in keys if k in C and k[0] == "RRL"]
+        # Complete crossings only: near the end of the run a wide bunch's outer particles have
+        # not reached the probe yet, and a partial turn's mean is another bunch's.
+        ks = [k for k in keys if k in C and k[0] == "RRL" and int(C[k]["particles"]) == a.particles
+              and int(P[k]["particles"]) == a.particles]
         ch = {k: float(C[k]["r_mm"]) - float(P[k]["r_mm"]) for k in ks}
         worst = max(ks, key=lambda k: abs(ch[k]))
-        at = " / ".join("%.4f" % ch[("RRL", t_)] if ("RRL", t_) in ch else "-" for t_ in (50, 100, 150, a.turns))
-        last = ("RRL", a.turns)
+        last = max(ks)
+        at = " / ".join("%.4f" % ch[("RRL", t_)] if ("RRL", t_) in ch else "-" for t_ in (50, 100, 150, last[1]))
         w = "%.3f / %.3f" % (float(P[last]["r_rms_mm"]), float(C[last]["r_rms_mm"])) if last in C else "-"
-        print("| %g | %.4f | %d | %s | %s | %.0f | %.1f |" % (cur, abs(ch[worst]), worst[1], at, w, t, t / t_plain))
+        print("| %g | %.4f | %d | %s | %s | %.0f | %.1f |" % (cur, abs(ch[worst]), worst[1], at, w, t, t / t_plain if t_plain > 0 else 0))
     print()
     for cur, (out, t, err) in results.items():
         print("%g uA: %s" % (cur, err.replace("turnfit-track: ", "")))
@@ -91,7 +102,8 @@ def main():
     print()
     for cur, (out, t, err) in [(0.0, (plain, t_plain, ""))] + list(results.items()):
         C = rows(out)
-        rr = [(k[1], float(C[k]["r_mm"]), float(C[k]["r_rms_mm"])) for k in sorted(C) if k[0] == "RRL"]
+        rr = [(k[1], float(C[k]["r_mm"]), float(C[k]["r_rms_mm"])) for k in sorted(C)
+              if k[0] == "RRL" and int(C[k]["particles"]) == a.particles]
         over = [t_ for (t_, r, w), (t2, r2, w2) in zip(rr, rr[1:]) if 2.35 * max(w, w2) > abs(r2 - r)]
         print("%g uA: turns whose FWHM reaches the next turn: %s" %
               (cur, "none" if not over else "%d (first at turn %d)" % (len(over), over[0])))
@@ -102,17 +114,19 @@ def main():
                 C = rows(out)
                 f.write("# %g uA\n" % cur)
                 for k in keys:
-                    if k in C and k[0] == "RRL":
+                    if k in C and k[0] == "RRL" and int(C[k]["particles"]) == a.particles:
                         f.write("%d %.6f %.6f %.6f\n" % (k[1], float(C[k]["r_mm"]) - float(P[k]["r_mm"]),
                                                          float(C[k]["r_rms_mm"]), float(P[k]["r_rms_mm"])))
                 f.write("\n\n")
         png = os.path.join(a.out, "space-charge.png")
         curs = list(results)
-        plot = ", ".join("'%s' index %d using 1:2 with lines title '%g uA'" % (data, i, c) for i, c in enumerate(curs))
-        widths = ", ".join("'%s' index %d using 1:3 with lines title '%g uA'" % (data, i, c) for i, c in enumerate(curs))
+        plot = ", ".join("'%s' index %d using 1:2 with lines lc %d title '%g uA'" % (data, i, i + 1, c)
+                         for i, c in enumerate(curs))
+        widths = ", ".join("'%s' index %d using 1:3 with lines lc %d title '%g uA'" % (data, i, i + 1, c)
+                           for i, c in enumerate(curs))
         script = ("set terminal pngcairo size 900,800\nset output '%s'\nset multiplot layout 2,1\n"
                   "set xlabel 'turn (RRL)'\nset ylabel 'centroid change [mm]'\nset key left top\nplot %s\n"
-                  "set ylabel 'turn width, rms [mm]'\nplot '%s' index 0 using 1:4 with lines dt 2 title 'no space charge', %s\n"
+                  "set ylabel 'turn width, rms [mm]'\nplot '%s' index 0 using 1:4 with lines dt 2 lc 0 title 'no space charge', %s\n"
                   "unset multiplot\n" % (png, plot, data, widths))
         subprocess.run(["gnuplot"], input=script, text=True, check=True)
         print("\nfigure: %s" % png)

@@ -3,6 +3,7 @@
 #include "turnfit/diagnose/current_dependence.hpp"
 
 #include <Eigen/Dense>
+#include <algorithm>
 #include <cmath>
 #include <filesystem>
 #include <map>
@@ -10,6 +11,7 @@
 
 #include "turnfit/cli/common.hpp"
 #include "turnfit/diagnose/diagnose.hpp"
+#include "turnfit/io/csv.hpp"
 #include "turnfit/io/error.hpp"
 #include "turnfit/spacecharge/space_charge.hpp"
 #include "turnfit/track/bunch.hpp"
@@ -85,13 +87,73 @@ CurrentFit fit_current_dependence(const std::vector<std::vector<double>>& y,
 
 namespace {
 
-/// The bunch's centroid radius per (probe name, turn).
+/// The bunch's centroid radius (or its rms width) per (probe name, turn), of the crossings every
+/// particle made (near the end of a run a wide bunch's outer particles may not have reached the
+/// probe yet: a partial turn's mean and width are another bunch's).
 using CentroidMap = std::map<std::pair<std::string, int>, double>;
 
-CentroidMap centroid_map(const TrackModel& model, const BunchResult& r) {
+CentroidMap centroid_map(const TrackModel& model, const BunchResult& r, bool width = false) {
   CentroidMap m;
-  for (const Centroid& c : r.centroids) m[{model.probes[static_cast<size_t>(c.probe)].name, c.turn}] = c.r_mm;
+  for (const Centroid& c : r.centroids)
+    if (c.particles == r.particles)
+      m[{model.probes[static_cast<size_t>(c.probe)].name, c.turn}] = width ? c.r_rms_mm : c.r_mm;
   return m;
+}
+
+/// A peak's fitted rms width per (probe, turn) from peaks files (turnfit-peakfind's width_mm),
+/// left out when flagged merged, wide, weak or at the edge (such a width is its neighbours' as
+/// well, or no width at all); "cross" (deblended from an overlapping neighbour) and
+/// "ambiguous" keep theirs: at mA currents on ring8 every turn of RRL overlaps its neighbours.
+CentroidMap measured_widths(const std::vector<std::string>& files) {
+  CentroidMap m;
+  for (const auto& f : files) {
+    const CsvTable t = CsvTable::read(f);
+    if (!t.has_column("width_mm"))
+      throw data_error(f, 0, "no width_mm column: the space-charge candidate compares the turns' widths "
+                             "(turnfit-peakfind writes them)");
+    t.require_columns({"probe", "turn"});
+    const size_t cp = t.column("probe"), ct = t.column("turn"), cw = t.column("width_mm");
+    const bool flags = t.has_column("flag");
+    const size_t cf = flags ? t.column("flag") : 0;
+    for (size_t i = 0; i < t.rows(); ++i) {
+      if (flags) {
+        const std::string& fl = t.cell(i, cf);
+        bool bad = false;
+        for (const char* word : {"merged", "wide", "weak", "edge"}) bad = bad || fl.find(word) != std::string::npos;
+        if (bad) continue;
+      }
+      const double turn = t.number(i, ct), w = t.number(i, cw);
+      if (turn != std::floor(turn) || !(w > 0)) continue;
+      m[{t.cell(i, cp), static_cast<int>(turn)}] = w;
+    }
+  }
+  return m;
+}
+
+/// The noise of a series taken turn by turn (per probe), from its second differences along
+/// consecutive turns: for independent errors var(d) = 6 sigma^2, and the median of d^2 / var(d)
+/// is chi2(1)'s, 0.4549 (robust to single bad points). Per probe name; probes with fewer than
+/// 8 second differences get none.
+std::map<std::string, double> series_noise(const CentroidMap& v) {
+  std::map<std::string, std::vector<double>> d2;
+  for (auto it = v.begin(); it != v.end(); ++it) {
+    auto a = it, b = std::next(it);
+    if (b == v.end()) break;
+    auto c = std::next(b);
+    if (c == v.end()) break;
+    if (a->first.first != c->first.first || b->first.second != a->first.second + 1 ||
+        c->first.second != b->first.second + 1)
+      continue;
+    const double d = a->second - 2 * b->second + c->second;
+    d2[a->first.first].push_back(d * d);
+  }
+  std::map<std::string, double> out;
+  for (auto& [probe, x] : d2) {
+    if (x.size() < 8) continue;
+    std::nth_element(x.begin(), x.begin() + static_cast<long>(x.size() / 2), x.end());
+    out[probe] = std::sqrt(x[x.size() / 2] / 0.4549 / 6);
+  }
+  return out;
 }
 
 }  // namespace
@@ -176,12 +238,14 @@ CurrentTest space_charge_candidate(const TurnPatternProblem& p, const nlohmann::
   TrackSettings st = p.track_settings();
   st.reference_stepper = false;
   st.integrator = "azimuth";
-  const CentroidMap plain = centroid_map(model, track_bunch(model, starts, st, s.threads));
-  std::vector<CentroidMap> with(K);
+  const BunchResult plain_run = track_bunch(model, starts, st, s.threads);
+  const CentroidMap plain = centroid_map(model, plain_run), plain_w = centroid_map(model, plain_run, true);
+  std::vector<CentroidMap> with(K), with_w(K);
   json solves = json::array();
   for (size_t k = 0; k < K; ++k) {
     if (ms[k].current_uA == 0) {
       with[k] = plain;
+      with_w[k] = plain_w;
       continue;
     }
     sc::SpaceChargeSettings scs;
@@ -190,7 +254,9 @@ CurrentTest space_charge_candidate(const TurnPatternProblem& p, const nlohmann::
     scs.every_steps = s.every_steps;
     sc::SpaceChargeKick kick(model, scs, starts.size(), s.threads);
     CollectiveKick ck = kick.collective();
-    with[k] = centroid_map(model, track_bunch(model, starts, st, s.threads, {}, {}, &ck));
+    const BunchResult r = track_bunch(model, starts, st, s.threads, {}, {}, &ck);
+    with[k] = centroid_map(model, r);
+    with_w[k] = centroid_map(model, r, true);
   }
   // The points every measurement has (the same probe and turn), matched, not an outlier, with
   // a finite Jacobian row and a signature at every current.
@@ -228,44 +294,95 @@ CurrentTest space_charge_candidate(const TurnPatternProblem& p, const nlohmann::
     }
   }
   const CurrentFit f = fit_current_dependence(y, sigma, J, sig);
-  CurrentTest out;
   const size_t n_rows = f.points * (K - 1);
   const double threshold = s.margin + (n_rows > 1 ? std::log(static_cast<double>(n_rows)) : 0.0);
-  out.named = f.points > 0 && f.gain > threshold && f.alpha > 0;
+
+  // The widths: what space charge changes most. A turn's measured width squared is the bunch's
+  // rms width squared plus what the wire and the peak fit add (the same at every current: it
+  // drops out with the per-turn common term), so the widths' squares are compared with the
+  // model's rms widths squared, and no design variable enters (a run's drift moves the turns,
+  // it hardly widens them).
+  std::vector<CentroidMap> wm(K);
+  std::vector<std::map<std::string, double>> wnoise(K);
+  for (size_t k = 0; k < K; ++k) {
+    for (const auto& [key, w] : measured_widths(ms[k].peaks)) wm[k][key] = w * w;
+    wnoise[k] = series_noise(wm[k]);
+  }
+  std::vector<std::vector<double>> wy(K), wsig(K), wsg(K);
+  std::vector<std::vector<std::vector<double>>> wJ(K);
+  double wsig_max = 0;
+  for (const auto& [key, v0] : wm[0]) {
+    bool ok = true;
+    for (size_t k = 0; k < K && ok; ++k)
+      ok = wm[k].count(key) && wnoise[k].count(key.first) && wnoise[k].at(key.first) > 0 && with_w[k].count(key);
+    if (!ok) continue;
+    for (size_t k = 0; k < K; ++k) {
+      wy[k].push_back(wm[k].at(key));
+      wsg[k].push_back(wnoise[k].at(key.first));
+      wJ[k].emplace_back();
+      const double model_w = with_w[k].at(key);
+      wsig[k].push_back(model_w * model_w);
+      wsig_max = std::max(wsig_max, std::fabs(model_w * model_w - wsig[0].back()));
+    }
+    (void)v0;
+  }
+  const CurrentFit fw = fit_current_dependence(wy, wsg, wJ, wsig);
+  const size_t w_rows = fw.points * (K - 1);
+  const double w_threshold = s.margin + (w_rows > 1 ? std::log(static_cast<double>(w_rows)) : 0.0);
+  // Named when the widths change with the current, significantly, by the bunch's own field's
+  // amount within a factor of 3 (beta: the measured change over the model's; the peak fit's
+  // width is not exactly the bunch's rms).
+  const bool significant = fw.points > 0 && fw.gain > w_threshold;
+  const bool sized = fw.alpha > 1.0 / 3 && fw.alpha < 3;
+  CurrentTest out;
+  out.named = significant && sized;
   json cur = json::array();
   for (size_t k = 0; k < K; ++k) {
     double rms = 0;
     for (double v : sig[k]) rms += v * v;
+    json wn = json::object();
+    for (const auto& [probe, v] : wnoise[k]) wn[probe] = v;
     cur.push_back({{"current_uA", ms[k].current_uA},
                    {"peaks", ms[k].peaks},
                    {"noise_mm", noise[k].scatter_mm},
+                   {"width2_noise_mm2", wn},
                    {"signature_rms_mm", sig[k].empty() ? 0.0 : std::sqrt(rms / static_cast<double>(sig[k].size()))}});
   }
   std::string why;
-  if (f.points == 0)
-    why = "no turn is common to the measurements";
+  if (fw.points == 0)
+    why = "no turn has a usable width in every measurement";
   else if (out.named)
-    why = "the turns move with the current as the bunch's own field predicts";
-  else if (f.gain_at_one < threshold)
-    why = "the model's space charge at these currents is below the detection limit (it would gain " +
-          cli::fmt(f.gain_at_one, 3) + " against the threshold " + cli::fmt(threshold, 3) + ")";
-  else if (f.alpha <= 0)
-    why = "what changes with the current goes the other way";
+    why = "the turns widen with the current as the bunch's own field widens them";
+  else if (significant)
+    why = "the turns' widths change with the current, but by " + cli::fmt(fw.alpha, 3) +
+          " times what the bunch's own field gives: something else changes with the current";
+  else if (fw.gain_at_one < w_threshold)
+    why = "the model's space charge at these currents is below the detection limit (its widths would gain " +
+          cli::fmt(fw.gain_at_one, 3) + " against the threshold " + cli::fmt(w_threshold, 3) + ")";
   else
-    why = "what changes with the current is not significant";
+    why = "the turns' widths do not change with the current as the bunch's own field would change them";
   out.report = {{"type", "space-charge"},
                 {"verdict", out.named ? "named" : "not-named"},
                 {"reason", why},
-                {"alpha", f.alpha},
-                {"alpha_sigma", f.alpha_sigma},
-                {"gain", f.gain},
-                {"threshold", threshold},
-                {"gain_at_model", f.gain_at_one},
-                {"chi2_without", f.chi2_without},
-                {"chi2_with", f.chi2_with},
-                {"dof", f.dof},
-                {"points", f.points},
-                {"signature_max_mm", sig_max},
+                {"alpha", fw.alpha},
+                {"alpha_sigma", fw.alpha_sigma},
+                {"gain", fw.gain},
+                {"threshold", w_threshold},
+                {"gain_at_model", fw.gain_at_one},
+                {"chi2_without", fw.chi2_without},
+                {"chi2_with", fw.chi2_with},
+                {"dof", fw.dof},
+                {"points", fw.points},
+                {"signature_max_mm2", wsig_max},
+                {"centroids",
+                 {{"alpha", f.alpha},
+                  {"alpha_sigma", f.alpha_sigma},
+                  {"gain", f.gain},
+                  {"threshold", threshold},
+                  {"gain_at_model", f.gain_at_one},
+                  {"dof", f.dof},
+                  {"points", f.points},
+                  {"signature_max_mm", sig_max}}},
                 {"measurements", cur},
                 {"model", {{"particles", starts.size()},
                            {"grid", {s.grid.nx, s.grid.ny, s.grid.nz}},

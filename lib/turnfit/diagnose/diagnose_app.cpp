@@ -200,12 +200,14 @@ std::string diagnosis_markdown(const TurnPatternProblem& p, const json& r) {
   if (r.contains("space_charge")) {
     const json& c = r["space_charge"];
     md << "## Space charge (measurements at " << c["measurements"].size() << " currents)\n\n**"
-       << c["verdict"].get<std::string>() << "**: " << c["reason"].get<std::string>() << ". The current-dependent "
-       << "part of the residual is alpha = " << num(c["alpha"], 3) << " +- " << num(c["alpha_sigma"], 2)
-       << " times the model's (the bunch's centroids with and without its own field, largest change "
-       << num(c["signature_max_mm"], 3) << " mm); chi2 gain " << num(c["gain"], 3) << " against the threshold "
+       << c["verdict"].get<std::string>() << "**: " << c["reason"].get<std::string>()
+       << ". The turns' widths squared change with the current by alpha = " << num(c["alpha"], 3) << " +- "
+       << num(c["alpha_sigma"], 2) << " times what the bunch's own field gives them (the model's largest change "
+       << num(c["signature_max_mm2"], 3) << " mm^2); chi2 gain " << num(c["gain"], 3) << " against the threshold "
        << num(c["threshold"], 3) << "; the model's space charge alone would gain " << num(c["gain_at_model"], 3)
-       << ".\n\n";
+       << ". The turns' positions: alpha " << num(c["centroids"]["alpha"], 3) << " +- "
+       << num(c["centroids"]["alpha_sigma"], 2) << ", gain " << num(c["centroids"]["gain"], 3)
+       << " (the model's own would gain " << num(c["centroids"]["gain_at_model"], 3) << ").\n\n";
   }
   if (!r["effects"].empty()) {
     md << "## Missing physics\n\n";
