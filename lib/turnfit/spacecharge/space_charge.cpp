@@ -7,11 +7,13 @@
 #include <cstdio>
 
 #include "turnfit/io/error.hpp"
+#include "turnfit/io/parallel.hpp"
 #include "turnfit/physics/particle.hpp"
 
 namespace turnfit::sc {
 
 namespace {
+constexpr size_t kBlock = 4096;  // particles per block of the frame and kick loops
 double seconds_since(std::chrono::steady_clock::time_point t0) {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
 }
@@ -33,7 +35,7 @@ SpaceChargeSettings settings_of(const SpaceChargeSpec& spec) {
 
 SpaceChargeKick::SpaceChargeKick(const TrackModel& model, const SpaceChargeSettings& s, size_t particles,
                                  unsigned threads)
-    : model_(model), settings_(s), solver_(s.grid, threads) {
+    : model_(model), settings_(s), solver_(s.grid, threads), threads_(resolve_thread_count(threads)) {
   if (!(s.current_uA >= 0)) throw usage_error("space charge: the beam current must be >= 0 uA, got " + num(s.current_uA));
   if (s.current_uA > 0 && !(model.rf_MHz > 0))
     throw usage_error("space charge: the bunch charge is the current over the RF frequency, and the machine has no "
@@ -89,7 +91,11 @@ void SpaceChargeKick::operator()(double /*theta_rad*/, double dtheta_rad, const 
   xyz_.resize(3 * n);
   q_.assign(n, q_particle_C_);
   e_.resize(3 * n);
-  for (size_t i = 0; i < n; ++i) {
+  // (Particles are independent here and below: blocks of them on the workers, the same numbers
+  // for any thread count.)
+  const size_t blocks = (n + kBlock - 1) / kBlock;
+  parallel_for(blocks, threads_, [&](size_t blk, unsigned) {
+  for (size_t i = blk * kBlock, end = std::min(n, i + kBlock); i < end; ++i) {
     const ParticleState& s = states[i].s;
     // Where the particle is at the mean time, moving straight on (the bunch passes an azimuth
     // over a fraction of a degree of its orbit: the arc's sagitta is micrometres).
@@ -100,6 +106,7 @@ void SpaceChargeKick::operator()(double /*theta_rad*/, double dtheta_rad, const 
     xyz_[3 * i + 1] = d[0] * ev[0] + d[1] * ev[1] + d[2] * ev[2];
     xyz_[3 * i + 2] = gamma * (d[0] * el[0] + d[1] * el[1] + d[2] * el[2]);
   }
+  });
   stats_.frame_s += seconds_since(t0);
   solver_.solve(n, xyz_.data(), q_.data(), e_.data());
   const auto t1 = std::chrono::steady_clock::now();
@@ -110,7 +117,9 @@ void SpaceChargeKick::operator()(double /*theta_rad*/, double dtheta_rad, const 
   // dt = dt/dtheta dtheta, with m c = mass [eV] e / c.
   const double beta[3] = {P[0] / gamma, P[1] / gamma, P[2] / gamma};
   const double to_mc = model_.charge_e * kSpeedOfLight / (model_.mass_MeV * 1e6);
-  for (size_t i = 0; i < n; ++i) {
+  std::vector<double> largest(blocks, 0.0);
+  parallel_for(blocks, threads_, [&](size_t blk, unsigned) {
+  for (size_t i = blk * kBlock, end = std::min(n, i + kBlock); i < end; ++i) {
     const double* ep = &e_[3 * i];
     double E[3];
     for (int k = 0; k < 3; ++k) E[k] = gamma * (ep[0] * eh[k] + ep[1] * ev[k]) + ep[2] * el[k];
@@ -129,8 +138,10 @@ void SpaceChargeKick::operator()(double /*theta_rad*/, double dtheta_rad, const 
       kick2 += dp[3 * i + k] * dp[3 * i + k];
     }
     const double pi = g * std::sqrt(b[0] * b[0] + b[1] * b[1] + b[2] * b[2]);
-    if (pi > 0) stats_.largest_kick = std::max(stats_.largest_kick, std::sqrt(kick2) / pi);
+    if (pi > 0) largest[blk] = std::max(largest[blk], std::sqrt(kick2) / pi);
   }
+  });
+  for (double v : largest) stats_.largest_kick = std::max(stats_.largest_kick, v);
   stats_.frame_s += seconds_since(t1);
   stats_.solver = solver_.times();
 }

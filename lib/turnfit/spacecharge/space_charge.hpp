@@ -59,6 +59,7 @@ class SpaceChargeKick {
   const TrackModel& model_;
   SpaceChargeSettings settings_;
   OpenPoissonSolver solver_;
+  unsigned threads_ = 1;
   double q_particle_C_ = 0;
   SpaceChargeStats stats_;
   std::vector<double> xyz_, q_, e_;

@@ -562,17 +562,24 @@ BunchResult track_bunch_collective(const TrackModel& model, const std::vector<Pa
   std::vector<std::vector<size_t>> where(nchunks);  // per chunk: lane -> place in index (or none)
   const size_t none = static_cast<size_t>(-1);
   double before = 0;  // azimuth stepped since the last kick
+  // Each lane's state in its particle's slot (on the workers), then the running ones packed in
+  // particle order.
+  std::vector<LaneState> slot(n);
+  std::vector<unsigned char> alive(n);
   while (runs[0].running()) {
+    parallel_for(nchunks, nt, [&](size_t c, unsigned) {
+      for (size_t l = 0; l < runs[c].size(); ++l) alive[c * kChunk + l] = runs[c].lane(l, slot[c * kChunk + l]);
+    });
     index.clear();
     states.clear();
     for (size_t c = 0; c < nchunks; ++c) {
       where[c].assign(runs[c].size(), none);
       for (size_t l = 0; l < runs[c].size(); ++l) {
-        LaneState ls;
-        if (!runs[c].lane(l, ls)) continue;
+        const size_t i = c * kChunk + l;
+        if (!alive[i]) continue;
         where[c][l] = index.size();
-        index.push_back(c * kChunk + l);
-        states.push_back(ls);
+        index.push_back(i);
+        states.push_back(slot[i]);
       }
     }
     if (index.empty()) break;
