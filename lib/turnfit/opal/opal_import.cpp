@@ -447,7 +447,8 @@ struct Importer {
           note(beam->find("BFREQ")->line, "BEAM BFREQ: sets OPAL's time step with STEPSPERTURN (the RF frequency here)");
       }
       r.explain("NPART", "OPAL's particle count: turnfit-track --particles");
-      r.explain("BCURRENT", "beam current: no space charge in turnfit yet");
+      r.explain("BCURRENT", "beam current: space charge is not imported (turnfit-track --space-charge --current-uA, "
+                            "or a space_charge block)");
       r.finish();
     }
 
@@ -721,7 +722,12 @@ struct Importer {
     Attrs r(c, in, notes);
     const std::string t = upper(r.string("FSTYPE").value_or("NONE"));
     if (t == "NONE") note(c.line, "FIELDSOLVER " + c.label + ": FSTYPE = NONE, no space charge");
-    else note(c.line, "FIELDSOLVER " + c.label + ": space charge (FSTYPE = " + t + ") is not modelled by turnfit yet", false);
+    else
+      note(c.line,
+           "FIELDSOLVER " + c.label + ": space charge (FSTYPE = " + t +
+               ") is not imported: turnfit's own particle-in-cell solver is turnfit-track --space-charge --current-uA "
+               "--sc-grid (or a space_charge block in the machine)",
+           false);
   }
 
   void distribution(const Command& c) {
