@@ -36,7 +36,8 @@ SpaceChargeSettings settings_of(const SpaceChargeSpec& spec) {
 SpaceChargeKick::SpaceChargeKick(const TrackModel& model, const SpaceChargeSettings& s, size_t particles,
                                  unsigned threads)
     : model_(model), settings_(s), solver_(s.grid, threads), threads_(resolve_thread_count(threads)) {
-  if (!(s.current_uA >= 0)) throw usage_error("space charge: the beam current must be >= 0 uA, got " + num(s.current_uA));
+  if (!(s.current_uA >= 0))
+    throw usage_error("space charge: the beam current must be >= 0 uA, got " + num(s.current_uA));
   if (s.current_uA > 0 && !(model.rf_MHz > 0))
     throw usage_error("space charge: the bunch charge is the current over the RF frequency, and the machine has no "
                       "RF (rf.frequency_MHz)");
@@ -95,17 +96,17 @@ void SpaceChargeKick::operator()(double /*theta_rad*/, double dtheta_rad, const 
   // for any thread count.)
   const size_t blocks = (n + kBlock - 1) / kBlock;
   parallel_for(blocks, threads_, [&](size_t blk, unsigned) {
-  for (size_t i = blk * kBlock, end = std::min(n, i + kBlock); i < end; ++i) {
-    const ParticleState& s = states[i].s;
-    // Where the particle is at the mean time, moving straight on (the bunch passes an azimuth
-    // over a fraction of a degree of its orbit: the arc's sagitta is micrometres).
-    const double g = std::sqrt(1 + s.px * s.px + s.py * s.py + s.pz * s.pz);
-    const double dt = T - s.t, f = kSpeedOfLight * dt / g;
-    const double d[3] = {s.x + s.px * f - X[0], s.y + s.py * f - X[1], s.z + s.pz * f - X[2]};
-    xyz_[3 * i] = d[0] * eh[0] + d[1] * eh[1] + d[2] * eh[2];
-    xyz_[3 * i + 1] = d[0] * ev[0] + d[1] * ev[1] + d[2] * ev[2];
-    xyz_[3 * i + 2] = gamma * (d[0] * el[0] + d[1] * el[1] + d[2] * el[2]);
-  }
+    for (size_t i = blk * kBlock, end = std::min(n, i + kBlock); i < end; ++i) {
+      const ParticleState& s = states[i].s;
+      // Where the particle is at the mean time, moving straight on (the bunch passes an azimuth
+      // over a fraction of a degree of its orbit: the arc's sagitta is micrometres).
+      const double g = std::sqrt(1 + s.px * s.px + s.py * s.py + s.pz * s.pz);
+      const double dt = T - s.t, f = kSpeedOfLight * dt / g;
+      const double d[3] = {s.x + s.px * f - X[0], s.y + s.py * f - X[1], s.z + s.pz * f - X[2]};
+      xyz_[3 * i] = d[0] * eh[0] + d[1] * eh[1] + d[2] * eh[2];
+      xyz_[3 * i + 1] = d[0] * ev[0] + d[1] * ev[1] + d[2] * ev[2];
+      xyz_[3 * i + 2] = gamma * (d[0] * el[0] + d[1] * el[1] + d[2] * el[2]);
+    }
   });
   stats_.frame_s += seconds_since(t0);
   solver_.solve(n, xyz_.data(), q_.data(), e_.data());
@@ -119,27 +120,27 @@ void SpaceChargeKick::operator()(double /*theta_rad*/, double dtheta_rad, const 
   const double to_mc = model_.charge_e * kSpeedOfLight / (model_.mass_MeV * 1e6);
   std::vector<double> largest(blocks, 0.0);
   parallel_for(blocks, threads_, [&](size_t blk, unsigned) {
-  for (size_t i = blk * kBlock, end = std::min(n, i + kBlock); i < end; ++i) {
-    const double* ep = &e_[3 * i];
-    double E[3];
-    for (int k = 0; k < 3; ++k) E[k] = gamma * (ep[0] * eh[k] + ep[1] * ev[k]) + ep[2] * el[k];
-    // c B = beta x E.
-    const double cB[3] = {beta[1] * E[2] - beta[2] * E[1], beta[2] * E[0] - beta[0] * E[2],
-                          beta[0] * E[1] - beta[1] * E[0]};
-    const ParticleState& s = states[i].s;
-    const double g = std::sqrt(1 + s.px * s.px + s.py * s.py + s.pz * s.pz);
-    const double b[3] = {s.px / g, s.py / g, s.pz / g};  // v / c
-    const double F[3] = {E[0] + b[1] * cB[2] - b[2] * cB[1], E[1] + b[2] * cB[0] - b[0] * cB[2],
-                         E[2] + b[0] * cB[1] - b[1] * cB[0]};
-    const double dt = states[i].dt_dtheta * dtheta_rad;
-    double kick2 = 0;
-    for (int k = 0; k < 3; ++k) {
-      dp[3 * i + k] = to_mc * F[k] * dt;
-      kick2 += dp[3 * i + k] * dp[3 * i + k];
+    for (size_t i = blk * kBlock, end = std::min(n, i + kBlock); i < end; ++i) {
+      const double* ep = &e_[3 * i];
+      double E[3];
+      for (int k = 0; k < 3; ++k) E[k] = gamma * (ep[0] * eh[k] + ep[1] * ev[k]) + ep[2] * el[k];
+      // c B = beta x E.
+      const double cB[3] = {beta[1] * E[2] - beta[2] * E[1], beta[2] * E[0] - beta[0] * E[2],
+                            beta[0] * E[1] - beta[1] * E[0]};
+      const ParticleState& s = states[i].s;
+      const double g = std::sqrt(1 + s.px * s.px + s.py * s.py + s.pz * s.pz);
+      const double b[3] = {s.px / g, s.py / g, s.pz / g};  // v / c
+      const double F[3] = {E[0] + b[1] * cB[2] - b[2] * cB[1], E[1] + b[2] * cB[0] - b[0] * cB[2],
+                           E[2] + b[0] * cB[1] - b[1] * cB[0]};
+      const double dt = states[i].dt_dtheta * dtheta_rad;
+      double kick2 = 0;
+      for (int k = 0; k < 3; ++k) {
+        dp[3 * i + k] = to_mc * F[k] * dt;
+        kick2 += dp[3 * i + k] * dp[3 * i + k];
+      }
+      const double pi = g * std::sqrt(b[0] * b[0] + b[1] * b[1] + b[2] * b[2]);
+      if (pi > 0) largest[blk] = std::max(largest[blk], std::sqrt(kick2) / pi);
     }
-    const double pi = g * std::sqrt(b[0] * b[0] + b[1] * b[1] + b[2] * b[2]);
-    if (pi > 0) largest[blk] = std::max(largest[blk], std::sqrt(kick2) / pi);
-  }
   });
   for (double v : largest) stats_.largest_kick = std::max(stats_.largest_kick, v);
   stats_.frame_s += seconds_since(t1);
