@@ -193,11 +193,12 @@ CurrentTest space_charge_candidate(const TurnPatternProblem& p, const nlohmann::
     std::vector<std::vector<double>> xs{x};
     std::vector<double> h(nv);
     for (size_t v = 0; v < nv; ++v) {
-      h[v] = 1e-4 * (vars[v].upper - vars[v].lower);
-      if (!(h[v] > 0)) h[v] = 1e-6;
+      const double step = std::max(1e-4 * (vars[v].upper - vars[v].lower), 1e-9);
+      // Inside the bounds (a fit may end on one): one-sided there, h the span taken.
       std::vector<double> up = x, dn = x;
-      up[v] += h[v];
-      dn[v] -= h[v];
+      up[v] = std::min(x[v] + step, vars[v].upper);
+      dn[v] = std::max(x[v] - step, vars[v].lower);
+      h[v] = 0.5 * (up[v] - dn[v]);
       xs.push_back(up);
       xs.push_back(dn);
     }
@@ -210,7 +211,7 @@ CurrentTest space_charge_candidate(const TurnPatternProblem& p, const nlohmann::
     for (size_t v = 0; v < nv; ++v) {
       const TurnPatternResult &u = r[1 + 2 * v], &d = r[2 + 2 * v];
       for (size_t i = 0; i < n; ++i)
-        if (u.ok && d.ok && u.matched[i] && d.matched[i])
+        if (h[v] > 0 && u.ok && d.ok && u.matched[i] && d.matched[i])
           jac[k][i][v] = -(u.delta_mm[i] - d.delta_mm[i]) / (2 * h[v]);
         else
           jac[k][i][v] = std::nan("");
