@@ -12,81 +12,19 @@
 #include <vector>
 
 #include "turnfit/spacecharge/poisson.hpp"
+#include "../tests/poisson_points.hpp"
 
 using namespace turnfit::sc;
+using namespace turnfit::sc::testing;
 using Clock = std::chrono::steady_clock;
 
 namespace {
-
-constexpr double kPi_ = 3.14159265358979323846;
-const double kCoulomb = 1 / (4 * kPi_ * kEpsilon0_F_m);
-
-struct Points {
-  std::vector<double> xyz, q;
-  size_t size() const { return q.size(); }
-  void add(double x, double y, double z, double charge) {
-    xyz.insert(xyz.end(), {x, y, z});
-    q.push_back(charge);
-  }
-};
-
-double halton(size_t i, unsigned base) {
-  double f = 1, r = 0;
-  for (; i > 0; i /= base) {
-    f /= base;
-    r += f * static_cast<double>(i % base);
-  }
-  return r;
-}
-
-// The unit sphere filled by a turned cubic lattice of m points across (a quiet start).
-Points lattice_sphere(int m, double R, double Q) {
-  Points p;
-  const double ca = std::cos(0.3), sa = std::sin(0.3), cb = std::cos(0.5), sb = std::sin(0.5);
-  for (int i = 0; i < m; ++i)
-    for (int j = 0; j < m; ++j)
-      for (int k = 0; k < m; ++k) {
-        const double u = -1 + (i + 0.5) * 2 / m, v = -1 + (j + 0.5) * 2 / m, w = -1 + (k + 0.5) * 2 / m;
-        const double u2 = ca * u - sa * v, v2 = sa * u + ca * v;
-        const double v3 = cb * v2 - sb * w, w3 = sb * v2 + cb * w;
-        if (u2 * u2 + v3 * v3 + w3 * w3 < 1) p.add(R * u2, R * v3, R * w3, 1);
-      }
-  for (double& q : p.q) q = Q / static_cast<double>(p.size());
-  return p;
-}
-
-double normal_quantile(double u) {
-  double lo = -12, hi = 12;
-  for (int it = 0; it < 44; ++it) {
-    const double mid = 0.5 * (lo + hi);
-    (0.5 * std::erfc(-mid / std::sqrt(2.0)) < u ? lo : hi) = mid;
-  }
-  return 0.5 * (lo + hi);
-}
-
-Points random_gaussian(size_t n, double sx, double sy, double sz, double Q, unsigned seed) {
-  std::mt19937_64 rng(seed);
-  auto uniform = [&] { return (static_cast<double>(rng() >> 11) + 0.5) / 9007199254740992.0; };
-  auto normal = [&] { return std::sqrt(-2 * std::log(uniform())) * std::cos(2 * kPi_ * uniform()); };
-  Points p;
-  for (size_t i = 0; i < n; ++i) {
-    const double x = sx * normal(), y = sy * normal(), z = sz * normal();
-    p.add(x, y, z, Q / static_cast<double>(n));
-  }
-  return p;
-}
-
-std::array<double, 3> direction(size_t i) {
-  const double ct = 2 * halton(i + 1, 7) - 1, ph = 2 * kPi_ * halton(i + 1, 11);
-  const double st = std::sqrt(1 - ct * ct);
-  return {st * std::cos(ph), st * std::sin(ph), ct};
-}
 
 // Radial errors at 60 probes out to 2R: worst inside (0.3..0.8 R, relative), outside
 // (1.2..2 R, relative), near the centre (relative to E(R)), and rms over all.
 void sphere_row(int grid, int lattice) {
   const double R = 1e-3, Q = 1e-9;
-  Points p = lattice_sphere(lattice, R, Q);
+  Points p = lattice_ellipsoid(lattice, R, R, R, Q);
   const size_t charges = p.size();
   for (int k = 0; k < 60; ++k) {
     const double r = (0.05 + k * 1.95 / 59) * R;
@@ -173,10 +111,7 @@ int main() {
   std::printf("  grid    h/sigma   mean err   -(h/s)^2\n");
   {
     const double s = 1e-3, Q = 1e-9;
-    Points g;
-    for (size_t i = 1; i <= 100000; ++i)
-      g.add(s * normal_quantile(halton(i, 2)), s * normal_quantile(halton(i, 3)), s * normal_quantile(halton(i, 5)),
-            Q / 100000);
+    const Points g = quiet_gaussian(100000, s, s, s, Q);
     for (int grid : {32, 48, 64, 96}) gaussian_row(grid, g, s, Q);
   }
 
