@@ -4,6 +4,7 @@
 // nothing is concealed).
 #include <catch2/catch.hpp>
 
+#include <algorithm>
 #include <cmath>
 #include <random>
 
@@ -300,4 +301,55 @@ TEST_CASE("diagnose: a concealed first-harmonic bump is named, sized and refitte
                                                       std::count_if(d.effects.begin(), d.effects.end(), [](const json& x) {
                                                         return x["type"] != "field-harmonic";
                                                       }));
+}
+
+TEST_CASE("diagnose: look-alike sectors are refitted beside the strongest, so the screen's order does not decide alone",
+          "[diagnose]") {
+  TempDir tmp;
+  // Sector 5 stronger by 3e-4 under moved rinit and vchange: every sector's signature is
+  // mostly the same mean field, so several screen near the top.
+  std::vector<double> xt;
+  Machine truth = moved_ring8({"rinit", "vchange"}, {0.02, -0.03}, xt);
+  truth.doc["effects"] = json::array({{{"type", "sector-strength"}, {"sector", 5}, {"relative", 3e-4}}});
+  revalidate(truth);
+  const std::string peaks = turns_as_peaks(truth, tmp, "sector5.csv");
+  auto p = load_turn_problem(tmp.file(
+      "sector5.json", "{\"format\": \"turnfit-problem/1\", \"machine\": \"" + ring8("machine.json") + "\", \"peaks\": \"" +
+                          peaks + "\", \"bunch\": \"reference\", \"variables\": [\"rinit\", \"prinit\", \"vchange\"]}"));
+  auto run = [&](int siblings) {
+    DiagnoseSettings s;
+    s.threads = 2;
+    s.types = {"sector-strength"};
+    s.refits = 1;
+    s.siblings = siblings;
+    s.extra_refits = 0;
+    s.max_effects = 1;
+    return diagnose(*p, p->start(), s);
+  };
+  auto sectors_refitted = [](const Diagnosis& d) {
+    std::vector<std::string> labels;
+    for (const auto& r : d.rounds.at(0)["refits"]) labels.push_back(r["label"]);
+    return labels;
+  };
+  const Diagnosis lone = run(0);
+  const Diagnosis with = run(7);
+  CHECK(sectors_refitted(lone).size() == 1);
+  const auto labels = sectors_refitted(with);
+  CHECK(labels.size() >= 2);
+  // Every refitted sector screened at sibling_fraction (0.5) or more of the strongest screen.
+  double top = 0;
+  for (const auto& c : with.candidates)
+    if (c["round"] == 1) top = std::max(top, c["delta_chi2"].get<double>());
+  for (const auto& c : with.candidates)
+    if (c["round"] == 1 && std::find(labels.begin(), labels.end(), c["label"]) != labels.end())
+      CHECK(c["delta_chi2"].get<double>() >= DiagnoseSettings{}.sibling_fraction * top);
+  // The true sector is refitted and named, or listed as one of equals.
+  CHECK(std::find(labels.begin(), labels.end(), "sector-strength of sector 5") != labels.end());
+  REQUIRE(with.effects.size() == 1);
+  bool listed = with.effects[0]["parameters"]["sector"] == 5;
+  for (const auto& a : with.ambiguous)
+    for (const auto& e : a["effects"]) listed = listed || e["label"] == "sector-strength of sector 5";
+  CHECK(listed);
+  // Refitting more can only find a fit as good or better than the one refit.
+  CHECK(with.effects[0]["delta_chi2"].get<double>() >= lone.effects.at(0)["delta_chi2"].get<double>() - 1e-6);
 }

@@ -122,12 +122,27 @@ struct DiagnoseSettings {
   double ambiguity = 6;             ///< Delta BIC within which a competitor is ambiguous (Kass and Raftery: "strong" evidence)
   int max_effects = 4;
   int refits = 3;                   ///< nonlinear refits of the strongest distinct candidates per round
+  /// Other instances of a picked candidate's type (sectors, cavities, coil groups, bumps) whose
+  /// linear screen gains at least `sibling_fraction` of that type's best pick are refitted too, at
+  /// most `siblings` of them: the screen ranks look-alike instances by less than its own
+  /// linearization error (0: none).
+  int siblings = 6;
+  double sibling_fraction = 0.5;
   /// Round 1: a refitted candidate whose refit from the base fit gains less than
   /// `from_start_shortfall` times its linearized screen's gain, and whose signature the
   /// variables take up all but `from_start_visible` of, is fitted a second time from the
   /// machine's values (0: never).
   double from_start_shortfall = 0.9;
   double from_start_visible = 0.1;
+  /// Round 1: while the best refit gains less than `screen_trust` times the linear screen of
+  /// the next distinct candidate, that one is refitted too, at most `extra_refits` (0: never).
+  int extra_refits = 4;
+  double screen_trust = 0.5;
+  /// Round 1: when a whole fit (from the machine's values) leads, up to `challengers` refits
+  /// within `challenge_fraction` of its chi2 gain that had none are fitted whole as well, so
+  /// that look-alikes are compared at their valley floors (0: never).
+  int challengers = 4;
+  double challenge_fraction = 0.1;
   int folds = 5;                    ///< interleaved held-out folds
   bool verbose = false;
   std::function<void(const std::string&)> log;  ///< progress lines (may be empty)

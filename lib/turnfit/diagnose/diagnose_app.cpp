@@ -47,10 +47,30 @@ void add_diagnose_options(CLI::App& app, DiagnoseOptions& o) {
       ->check(CLI::Range(1, 20));
   app.add_option("--refits", o.settings.refits, "Candidates refitted nonlinearly per round (default 3)")
       ->check(CLI::Range(1, 50));
+  app.add_option("--siblings", o.settings.siblings,
+                 "Also refit up to this many other instances of a refitted candidate's type (other sectors, "
+                 "cavities, coil groups) whose linear screen gains at least --sibling-fraction of its gain "
+                 "(default 6; 0: none)")
+      ->check(CLI::Range(0, 50));
+  app.add_option("--sibling-fraction", o.settings.sibling_fraction,
+                 "See --siblings (default 0.75)")
+      ->check(CLI::Range(0.0, 1.0));
   app.add_option("--from-start", o.settings.from_start_shortfall,
                  "Round 1: fit a candidate again from the machine's values when its refit from the fit gains less "
                  "than this fraction of its linear screen (default 0.9; 0: never)")
       ->check(CLI::Range(0.0, 10.0));
+  app.add_option("--extra-refits", o.settings.extra_refits,
+                 "Round 1: refit up to this many more candidates, in the screen's order, while the best refit "
+                 "gains less than --screen-trust of the next one's linear screen (default 4; 0: never)")
+      ->check(CLI::Range(0, 50));
+  app.add_option("--screen-trust", o.settings.screen_trust, "See --extra-refits (default 0.5)")
+      ->check(CLI::Range(0.0, 10.0));
+  app.add_option("--challengers", o.settings.challengers,
+                 "Round 1: when a fit from the machine's values leads, fit up to this many refits within "
+                 "--challenge-fraction of its gain from the machine's values too (default 4; 0: never)")
+      ->check(CLI::Range(0, 50));
+  app.add_option("--challenge-fraction", o.settings.challenge_fraction, "See --challengers (default 0.1)")
+      ->check(CLI::Range(0.0, 1.0));
   app.add_option("--scan-noise", o.scan_noise,
                  "The probe drive's correlated error, rms and correlation length along the wire's travel: "
                  "DRIVE_MM or DRIVE_MM,CORR_MM (default corr 10 mm; overrides the problem's scan_noise; 0: the "
