@@ -785,6 +785,8 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
       double wall_s = 0;
     };
     std::vector<Refit> refits;
+    // Refits that failed, each with the number of refits before it (the report keeps pick order).
+    std::vector<std::pair<size_t, json>> failed;
     round_rep["chi2"] = chi2_now;
     // The base fit's valley (round 1): where the variables take up nearly all of a signature
     // (the trim coils carry a sector's mean field), they have moved far to do so, and the joint
@@ -906,7 +908,7 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
       try {
         rf.r = local_search(*rf.state.prob, x, rs);
       } catch (const Error& err) {
-        round_rep["refits"].push_back({{"label", c.label}, {"error", err.what()}});
+        failed.push_back({refits.size(), {{"label", c.label}, {"error", err.what()}}});
         return;
       }
       evaluations += rf.r.evaluations;
@@ -946,9 +948,8 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
         ++extra;
       }
     }
-    // Look-alikes on equal terms (round 1). When a whole fit went further than the refits from
-    // the base fit, the refits close behind it (within `challenge_fraction` of its gain) that
-    // had none get one too: on a blind tuning case (sector 5 concealed) sector 4's whole fit
+    // Look-alikes on equal terms (round 1). When a whole fit comes within `challenge_fraction`
+    // of the best gain, the refits within that fraction of the best that had none get one too: on a blind tuning case (sector 5 concealed) sector 4's whole fit
     // gained 290 and reached the noise, sector 5's refit from the base fit stopped at 268, and
     // sector 4 was named alone.
     if (selected.empty() && s.challengers > 0) {
@@ -967,7 +968,10 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
       if (behind.size() > static_cast<size_t>(s.challengers)) behind.resize(static_cast<size_t>(s.challengers));
       for (Refit* rf : behind) whole_fit(*rf);
     }
-    for (auto& rf : refits) {
+    for (size_t i = 0, fi = 0; i <= refits.size(); ++i) {
+      while (fi < failed.size() && failed[fi].first == i) round_rep["refits"].push_back(failed[fi++].second);
+      if (i == refits.size()) break;
+      Refit& rf = refits[i];
       const Candidate& c = *rf.row->c;
       rf.dchi2 = chi2_now - rf.c2;
       rf.dbic = rf.dchi2 - k_of(c) * logN;

@@ -138,9 +138,10 @@ struct DiagnoseSettings {
   /// the next distinct candidate, that one is refitted too, at most `extra_refits` (0: never).
   int extra_refits = 4;
   double screen_trust = 0.5;
-  /// Round 1: when a whole fit (from the machine's values) leads, up to `challengers` refits
-  /// within `challenge_fraction` of its chi2 gain that had none are fitted whole as well, so
-  /// that look-alikes are compared at their valley floors (0: never).
+  /// Round 1: when a whole fit (from the machine's values) comes within `challenge_fraction`
+  /// of the round's best chi2 gain, up to `challengers` refits within that fraction that had
+  /// none (and whose signature the variables take up all but `from_start_visible` of) are
+  /// fitted whole as well, so that look-alikes are compared at their valley floors (0: never).
   int challengers = 4;
   double challenge_fraction = 0.1;
   int folds = 5;                    ///< interleaved held-out folds

@@ -53,7 +53,7 @@ void add_diagnose_options(CLI::App& app, DiagnoseOptions& o) {
                  "(default 6; 0: none)")
       ->check(CLI::Range(0, 50));
   app.add_option("--sibling-fraction", o.settings.sibling_fraction,
-                 "See --siblings (default 0.75)")
+                 "See --siblings (default 0.5)")
       ->check(CLI::Range(0.0, 1.0));
   app.add_option("--from-start", o.settings.from_start_shortfall,
                  "Round 1: fit a candidate again from the machine's values when its refit from the fit gains less "
@@ -66,8 +66,9 @@ void add_diagnose_options(CLI::App& app, DiagnoseOptions& o) {
   app.add_option("--screen-trust", o.settings.screen_trust, "See --extra-refits (default 0.5)")
       ->check(CLI::Range(0.0, 10.0));
   app.add_option("--challengers", o.settings.challengers,
-                 "Round 1: when a fit from the machine's values leads, fit up to this many refits within "
-                 "--challenge-fraction of its gain from the machine's values too (default 4; 0: never)")
+                 "Round 1: when a fit from the machine's values comes within --challenge-fraction of the round's "
+                 "best gain, fit up to this many refits within that fraction from the machine's values too "
+                 "(default 4; 0: never)")
       ->check(CLI::Range(0, 50));
   app.add_option("--challenge-fraction", o.settings.challenge_fraction, "See --challengers (default 0.1)")
       ->check(CLI::Range(0.0, 1.0));
