@@ -70,7 +70,7 @@ void gaussian_row(int grid, const Points& base, double s, double Q) {
     const double r = std::sqrt(x[0] * x[0] + x[1] * x[1] + x[2] * x[2]);
     const double er = (e[3 * i] * x[0] + e[3 * i + 1] * x[1] + e[3 * i + 2] * x[2]) / r;
     const double exact = kCoulomb * Q / (r * r) *
-                         (std::erf(r / (std::sqrt(2.0) * s)) - std::sqrt(2 / kPi_) * (r / s) * std::exp(-r * r / (2 * s * s)));
+                         (std::erf(r / (std::sqrt(2.0) * s)) - std::sqrt(2 / kPi) * (r / s) * std::exp(-r * r / (2 * s * s)));
     mean += (er / exact - 1) / 30;
   }
   const double h = solver.spacing()[0] / s;

@@ -7,12 +7,13 @@
 #include <random>
 #include <vector>
 
+#include "turnfit/physics/particle.hpp"
 #include "turnfit/spacecharge/poisson.hpp"
 
 namespace turnfit::sc::testing {
 
-inline constexpr double kPi_ = 3.14159265358979323846;
-inline const double kCoulomb = 1 / (4 * kPi_ * kEpsilon0_F_m);  // 1/(4 pi eps0) [m/F]
+using turnfit::kPi;
+inline const double kCoulomb = 1 / (4 * kPi * kEpsilon0_F_m);  // 1/(4 pi eps0) [m/F]
 
 // Points and charges as the solver takes them, probes (q = 0) appended after the charges.
 struct Points {
@@ -74,7 +75,7 @@ inline Points quiet_gaussian(size_t n, double sx, double sy, double sz, double c
 inline Points random_gaussian(size_t n, double sx, double sy, double sz, double charge, unsigned seed) {
   std::mt19937_64 rng(seed);
   auto uniform = [&] { return (static_cast<double>(rng() >> 11) + 0.5) / 9007199254740992.0; };
-  auto normal = [&] { return std::sqrt(-2 * std::log(uniform())) * std::cos(2 * kPi_ * uniform()); };
+  auto normal = [&] { return std::sqrt(-2 * std::log(uniform())) * std::cos(2 * kPi * uniform()); };
   Points p;
   for (size_t i = 0; i < n; ++i) {
     const double x = sx * normal(), y = sy * normal(), z = sz * normal();
@@ -85,7 +86,7 @@ inline Points random_gaussian(size_t n, double sx, double sy, double sz, double 
 
 // Probe directions that are no axis or diagonal of the grid (Halton on the sphere).
 inline std::array<double, 3> direction(size_t i) {
-  const double ct = 2 * halton(i + 1, 7) - 1, ph = 2 * kPi_ * halton(i + 1, 11);
+  const double ct = 2 * halton(i + 1, 7) - 1, ph = 2 * kPi * halton(i + 1, 11);
   const double st = std::sqrt(1 - ct * ct);
   return {st * std::cos(ph), st * std::sin(ph), ct};
 }

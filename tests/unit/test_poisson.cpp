@@ -144,7 +144,7 @@ std::array<double, 3> gaussian_field(double Q, const std::array<double, 3>& s, c
       const double di = 1 + 2 * s[i] * s[i] * u * u;
       return du * 2 * x[i] * u * u / di * std::exp(-ex) / den;
     };
-    e[i] = kCoulomb * Q * 2 / std::sqrt(kPi_) * gauss(f, 0, 1, 2000);
+    e[i] = kCoulomb * Q * 2 / std::sqrt(kPi) * gauss(f, 0, 1, 2000);
   }
   return e;
 }
@@ -233,7 +233,7 @@ TEST_CASE("poisson: uniformly charged ellipsoids", "[poisson]") {
     const double N[3] = {depolarisation(sh.a, sh.b, sh.c, 0), depolarisation(sh.a, sh.b, sh.c, 1),
                          depolarisation(sh.a, sh.b, sh.c, 2)};
     CHECK(N[0] + N[1] + N[2] == Approx(1).epsilon(1e-8));  // the factors' sum rule
-    const double rho = Q / (4.0 / 3 * kPi_ * sh.a * sh.b * sh.c);
+    const double rho = Q / (4.0 / 3 * kPi * sh.a * sh.b * sh.c);
     // Inside: probes at scaled radius 0.05..0.8 in the bunch's own grid (no probe stretches it).
     {
       Points p = lattice_ellipsoid(40, sh.a, sh.b, sh.c, Q);
@@ -305,7 +305,7 @@ TEST_CASE("poisson: Gaussian bunches against their exact fields", "[poisson]") {
       const auto x = p.at(i);
       const double r = std::sqrt(x[0] * x[0] + x[1] * x[1] + x[2] * x[2]);
       const double er = kCoulomb * Q / (r * r) *
-                        (std::erf(r / (std::sqrt(2.0) * s)) - std::sqrt(2 / kPi_) * (r / s) * std::exp(-r * r / (2 * s * s)));
+                        (std::erf(r / (std::sqrt(2.0) * s)) - std::sqrt(2 / kPi) * (r / s) * std::exp(-r * r / (2 * s * s)));
       // The quadrature formula the long bunch below relies on, checked on this exact case.
       const auto eq = gaussian_field(Q, {s, s, s}, x);
       CHECK(std::sqrt(eq[0] * eq[0] + eq[1] * eq[1] + eq[2] * eq[2]) == Approx(er).epsilon(1e-9));
@@ -327,7 +327,7 @@ TEST_CASE("poisson: Gaussian bunches against their exact fields", "[poisson]") {
     for (int k = 0; k < 40; ++k) {
       const double r = (0.2 + (k % 20) * 2.8 / 19) * s[0];
       const double z = (k < 20 ? 0.0 : 1.0) * s[2];
-      const double ph = 2 * kPi_ * halton(static_cast<size_t>(k) + 1, 3);
+      const double ph = 2 * kPi * halton(static_cast<size_t>(k) + 1, 3);
       p.add(r * std::cos(ph), r * std::sin(ph), z, 0);
     }
     OpenPoissonSolver solver({64, 64, 64});
