@@ -727,15 +727,16 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
       return a->sc.dchi2 - k_of(*a->c) * logN > b->sc.dchi2 - k_of(*b->c) * logN;
     });
     std::vector<const Row*> picks;
+    auto picked = [&](const Row* r) {
+      return std::any_of(picks.begin(), picks.end(), [&](const Row* q) { return same_effect(*q->c, *r->c); });
+    };
     // At most refits - 1 of one type while another type is waiting: a large effect's linear
     // screen understates it (sector-strength of -5e-4 screened at half of what a bump's grid
     // reached, on a blind tuning case), so the best of another type gets its refit too.
     std::map<std::string, int> per_type;
     for (const Row* r : order) {
       if (static_cast<int>(picks.size()) >= s.refits) break;
-      bool dup = false;
-      for (const Row* q : picks) dup = dup || same_effect(*q->c, *r->c);
-      if (dup) continue;
+      if (picked(r)) continue;
       if (s.refits > 1 && per_type[r->c->type] >= s.refits - 1) {
         bool other = false;
         for (const Row* q : order) other = other || (q->c->type != r->c->type);
@@ -765,9 +766,7 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
         if (added >= s.siblings) break;
         const auto it = lead.find(r->c->type);
         if (it == lead.end() || r->sc.dchi2 < s.sibling_fraction * it->second) continue;
-        bool dup = false;
-        for (const Row* q : picks) dup = dup || same_effect(*q->c, *r->c);
-        if (dup) continue;
+        if (picked(r)) continue;
         picks.push_back(r);
         ++added;
       }
@@ -926,6 +925,11 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
       refits.push_back(std::move(rf));
     };
     for (size_t pi = 0; pi < picks.size(); ++pi) refit_one(picks[pi], pi < primary);
+    auto best_gain = [&] {
+      double g = -std::numeric_limits<double>::infinity();
+      for (const auto& rf : refits) g = std::max(g, chi2_now - rf.c2);
+      return g;
+    };
     // When the refits fall far short of their screens, the screen's order says little (on a
     // blind tuning case, a voltage tilt of ft at 0.15, the refits of the three strongest gained
     // 20-77 of screens of 264-285, and the true tilt, screened tenth at 195, was never refitted).
@@ -935,13 +939,10 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
       int extra = 0;
       for (const Row* r : order) {
         if (extra >= s.extra_refits) break;
-        bool dup = false;
-        for (const Row* q : picks) dup = dup || same_effect(*q->c, *r->c);
-        if (dup) continue;
-        double best_gain = -std::numeric_limits<double>::infinity();
-        for (const auto& rf : refits) best_gain = std::max(best_gain, chi2_now - rf.c2);
-        if (best_gain >= s.screen_trust * r->sc.dchi2) break;
-        log("  the refits gain " + cli::fmt(best_gain, 5) + " at best, under " + cli::fmt(s.screen_trust, 3) +
+        if (picked(r)) continue;
+        const double best = best_gain();
+        if (best >= s.screen_trust * r->sc.dchi2) break;
+        log("  the refits gain " + cli::fmt(best, 5) + " at best, under " + cli::fmt(s.screen_trust, 3) +
             " of the next screen's " + cli::fmt(r->sc.dchi2, 5) + ": refit " + r->c->label + " too");
         picks.push_back(r);
         refit_one(r, true);
@@ -949,21 +950,18 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
       }
     }
     // Look-alikes on equal terms (round 1). When a whole fit comes within `challenge_fraction`
-    // of the best gain, the refits within that fraction of the best that had none get one too: on a blind tuning case (sector 5 concealed) sector 4's whole fit
-    // gained 290 and reached the noise, sector 5's refit from the base fit stopped at 268, and
-    // sector 4 was named alone.
+    // of the best gain, the refits within that fraction of the best that had none get one too:
+    // on a blind tuning case (sector 5 concealed) sector 4's whole fit gained 290 and reached
+    // the noise, sector 5's refit from the base fit stopped at 268, and sector 4 was named alone.
     if (selected.empty() && s.challengers > 0) {
-      double best_gain = -std::numeric_limits<double>::infinity();
-      bool whole_near = false;
-      for (const auto& rf : refits) best_gain = std::max(best_gain, chi2_now - rf.c2);
-      for (const auto& rf : refits)
-        whole_near = whole_near || (rf.start == "machine's values" &&
-                                    best_gain - (chi2_now - rf.c2) <= s.challenge_fraction * best_gain);
+      const double best = best_gain();
+      auto near = [&](const Refit& rf) { return best - (chi2_now - rf.c2) <= s.challenge_fraction * best; };
+      const bool whole_near = std::any_of(refits.begin(), refits.end(), [&](const Refit& rf) {
+        return rf.start == "machine's values" && near(rf);
+      });
       std::vector<Refit*> behind;
       for (auto& rf : refits)
-        if (whole_near && !rf.whole && rf.row->sc.visible < s.from_start_visible &&
-            best_gain - (chi2_now - rf.c2) <= s.challenge_fraction * best_gain)
-          behind.push_back(&rf);
+        if (whole_near && !rf.whole && rf.row->sc.visible < s.from_start_visible && near(rf)) behind.push_back(&rf);
       std::sort(behind.begin(), behind.end(), [](const Refit* a, const Refit* b) { return a->c2 < b->c2; });
       if (behind.size() > static_cast<size_t>(s.challengers)) behind.resize(static_cast<size_t>(s.challengers));
       for (Refit* rf : behind) whole_fit(*rf);
