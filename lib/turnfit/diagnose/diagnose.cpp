@@ -180,7 +180,8 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
   // The base fit with that noise as every turn's sigma. Every model holds a centroid shift
   // through its fits (recomputing it at every pass of every fit, localsearch's rule, made the
   // shipped measurement's diagnosis take 410 s instead of 305), but each has its own: the shift
-  // of its machine (the effects it has) at the design it starts from, followed once after the
+  // of its machine (the effects it has) where its fit starts (a refit: the state with the
+  // effect at its linear estimate), followed once after the
   // fits of round 1 and between rounds (follow_shift). A large effect moves the shift as much as the noise: on
   // a blind report case (a tilt of main1 at -0.122, low noise) every refit under the base
   // fit's shift ended 0.15-0.20 mm from the measurement at its worst turn, the noise estimate
@@ -222,12 +223,20 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
   // chi2 in an order the truth's did not support, and a sector beside the tilt.
   size_t shift_refits = 0;
   auto follow_shift = [&](State& S, LocalSearchResult& r) {
-    std::vector<double> sg;
+    std::vector<double> sg;  // outliers' sigma (times 1e3) included: the median hardly moves
     for (double v : S.prob->sigma_mm())
-      if (v > 0 && v < 1e3) sg.push_back(v);
+      if (v > 0) sg.push_back(v);
     if (!sg.empty()) std::nth_element(sg.begin(), sg.begin() + static_cast<long>(sg.size() / 2), sg.end());
     const double tol = sg.empty() ? 0.0 : 0.25 * sg[sg.size() / 2];
-    auto q = own_model(S.prob->machine(), S.prob->variables(), S.x);
+    // A shift that cannot be computed (the reference particle lost at x, which its fit has
+    // just simulated) leaves the fit as it is, under the shift it was made with.
+    std::unique_ptr<TurnPatternProblem> q;
+    try {
+      q = own_model(S.prob->machine(), S.prob->variables(), S.x);
+    } catch (const Error& err) {
+      log("  the centroid shift was not followed: " + std::string(err.what()));
+      return;
+    }
     q->set_sigma_mm(S.prob->sigma_mm());
     const auto& a = S.prob->current_centroid_shift().shift_mm;
     const auto& b = q->current_centroid_shift().shift_mm;
@@ -239,10 +248,15 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
     if (moved <= tol) return;
     ++shift_refits;
     const size_t earlier = r.evaluations;
-    r = local_search(*S.prob, S.x, rs);
-    evaluations += r.evaluations;
-    r.evaluations += earlier;  // the report counts the fit's designs, this one's included
-    S.x = r.x;
+    try {
+      LocalSearchResult again = local_search(*S.prob, S.x, rs);
+      evaluations += again.evaluations;
+      again.evaluations += earlier;  // the report counts the fit's designs, this one's included
+      r = std::move(again);
+      S.x = r.x;
+    } catch (const Error& err) {  // S.x stays, scored under the shift computed at it
+      log("  the fit again under its centroid shift failed: " + std::string(err.what()));
+    }
   };
   log("base fit of " + std::to_string(p.variables().size()) + " design variables with that noise");
   out.base_fit = local_search(*st.prob, x_start, fs);
