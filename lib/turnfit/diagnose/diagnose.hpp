@@ -127,6 +127,17 @@ struct DiagnoseSettings {
   /// most `siblings` of them: the screen ranks look-alike instances by less than its own
   /// linearization error (0: none).
   int siblings = 6;
+  /// A fit that ended for want of iterations is taken on from where it stopped, at most this
+  /// many times (0: never): the state before each screen, the elimination fits and the refits
+  /// below.
+  int polish_passes = 3;
+  /// Each round refits the model as it is, as a candidate's refit is made (its own centroid
+  /// shift, the refits' settings), and measures every candidate's gain against it.
+  bool null_refit = true;
+  /// Refits taken on to convergence per round: those within `polish_window` in chi2 of the
+  /// round's best and those that gained less than `screen_trust` of their screen.
+  int polish_refits = 8;
+  double polish_window = 30;
   double sibling_fraction = 0.5;
   /// Round 1: a refitted candidate whose refit from the base fit gains less than
   /// `from_start_shortfall` times its linearized screen's gain, and whose signature the
@@ -149,6 +160,22 @@ struct DiagnoseSettings {
   std::function<void(const std::string&)> log;  ///< progress lines (may be empty)
 };
 
+/// A candidate that passed beside a selected one in its round (a refit, or a screen whose refit
+/// fell short): its chi2 gain, its distance in chi2 below the selected one's gain, its parameters.
+struct Rival {
+  nlohmann::json info;  ///< label, type, instance, from ("refit" or "screen")
+  double gap_chi2 = 0;
+  double dchi2 = 0;
+  int k = 0;
+};
+
+/// The rivals ambiguous with a selected effect of k_selected parameters when every chi2 is divided
+/// by the overdispersion c (at least 1; quasi-likelihood, QBIC = chi2 / c + k ln N): those that
+/// pass on their own on that scale (Delta QBIC above margin) and whose QBIC lies within `window`
+/// of the selected one's. Each entry is the rival's info with its delta_bic on that scale.
+nlohmann::json ambiguous_rivals(const std::vector<Rival>& rivals, int k_selected, double overdispersion, double log_n,
+                                double margin, double window);
+
 /// A fit's figures with the diagnosis's noise.
 struct FitFigures {
   double linf_mm = 0, rms_mm = 0, chi2 = 0, chi2_per_dof = 0, dof = 0;
@@ -165,7 +192,10 @@ struct Diagnosis {
   double before_first_noise_chi2 = 0;  ///< the base fit's chi2 with the first round's noise
   Located located_before, located_after;
   nlohmann::json effects = nlohmann::json::array();     ///< selected: machine-file entries with sigma and scores
-  nlohmann::json ambiguous = nlohmann::json::array();
+  nlohmann::json ambiguous = nlohmann::json::array();  ///< judged on the final model's scale (overdispersion)
+  /// The final model's chi2 per degree of freedom, at least 1: the elimination's losses and the
+  /// ambiguity's distances are divided by it (quasi-likelihood).
+  double overdispersion = 1;
   nlohmann::json candidates = nlohmann::json::array();  ///< every candidate tried, with its scores
   nlohmann::json not_candidates = nlohmann::json::array();
   nlohmann::json rounds = nlohmann::json::array();      ///< greedy rounds: refits and choice

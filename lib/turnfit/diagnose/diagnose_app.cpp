@@ -72,6 +72,11 @@ void add_diagnose_options(CLI::App& app, DiagnoseOptions& o) {
       ->check(CLI::Range(0, 50));
   app.add_option("--challenge-fraction", o.settings.challenge_fraction, "See --challengers (default 0.1)")
       ->check(CLI::Range(0.0, 1.0));
+  app.add_option("--polish-passes", o.settings.polish_passes,
+                 "Take a fit that ran out of iterations on from where it stopped, at most this many times: the "
+                 "state before each screen, the elimination fits, and the refits within 30 in chi2 of a round's "
+                 "best or short of --screen-trust of their screen (default 3; 0: never)")
+      ->check(CLI::Range(0, 20));
   app.add_option("--scan-noise", o.scan_noise,
                  "The probe drive's correlated error, rms and correlation length along the wire's travel: "
                  "DRIVE_MM or DRIVE_MM,CORR_MM (default corr 10 mm; overrides the problem's scan_noise; 0: the "
@@ -139,6 +144,7 @@ json diagnosis_report(const TurnPatternProblem& p, const Diagnosis& d, const std
   j["verdict"] = d.verdict;
   j["effects"] = d.effects;
   j["ambiguous"] = d.ambiguous;
+  j["overdispersion"] = d.overdispersion;
   json located = json::array();
   for (const auto& f : d.located_before.findings) located.push_back(f);
   j["located"] = located;
@@ -255,7 +261,10 @@ std::string diagnosis_markdown(const TurnPatternProblem& p, const json& r) {
     md << "\n";
   }
   if (!r["ambiguous"].empty()) {
-    md << "## Ambiguous\n\nThese explain the residual about as well (delta BIC within 6):\n\n";
+    md << "## Ambiguous\n\nThese explain the residual about as well (delta BIC within 6";
+    if (r.value("overdispersion", 1.0) > 1)
+      md << ", every chi2 divided by the final model's chi2/dof " << num(r["overdispersion"], 4);
+    md << "):\n\n";
     for (const auto& a : r["ambiguous"]) {
       md << "- " << a["selected"].get<std::string>() << " against";
       for (const auto& c : a["effects"]) md << " " << c["label"].get<std::string>() << " (delta BIC " << num(c["delta_bic"], 4) << ");";
@@ -265,7 +274,7 @@ std::string diagnosis_markdown(const TurnPatternProblem& p, const json& r) {
   }
   if (r.contains("eliminations") && !r["eliminations"].empty()) {
     md << "## Each effect taken out again\n\nThe others refitted without it; it stays when the chi2 they lose "
-          "earns its parameters:\n\n";
+          "(divided by the whole model's chi2/dof when that exceeds 1) earns its parameters:\n\n";
     for (const auto& e : r["eliminations"])
       md << "- " << e["label"].get<std::string>() << ": chi2 up by " << num(e["delta_chi2"], 4) << " (must earn "
          << num(e["threshold"], 3) << ")" << (e["dropped"].get<bool>() ? ": taken out" : "") << "\n";
