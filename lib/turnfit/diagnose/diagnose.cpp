@@ -276,14 +276,11 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
     }
   };
   // A fit that ran out of iterations (a refit's 20) has not reached its valley floor, and a
-  // comparison with it measures where it stopped, not the model. On report run M's cases the
-  // state of round 2, fitted again with 20 iterations after the noise moved by 62 %, was short
-  // of its floor: every round-2 refit gained the rest of its descent (a gap bow screened at 10.2
-  // gained 22.7 and was named beside the true tilt), and after four rounds of a 90 G bump one
-  // elimination fit found chi2 181 below the state it was taken from. So a fit that ended for
-  // want of iterations goes on from where it stopped, with localsearch's own limit, until it
-  // converges (at most `polish_passes` times): the state before every screen, the refits that
-  // decide a round (polish_refits below) and the elimination fits.
+  // comparison with it measures where it stopped, not the model: on run M's case04 (a 90 G
+  // bump, a tuning case) the right bump's refit stopped at chi2 1257 and went on to 743. So a
+  // fit that ended for want of iterations goes on from where it stopped, with localsearch's own
+  // limit, until it converges (at most `polish_passes` times): the state before every screen,
+  // the null refits, the refits that decide a round (below) and the elimination fits.
   LocalSearchSettings ps = rs;
   ps.max_iterations = std::max(fs.max_iterations, rs.max_iterations);
   size_t polished = 0;
@@ -892,7 +889,7 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
     // state's chi2 instead, a refit was also credited with what its new shift and its new fit
     // gain without any effect: on report run M's case03 the null refit went from 218.3 to 210.6
     // in round 2 (a gap bow's refit "gained" 22.9 there and was named beside the true tilt), and
-    // in round 1 from 657.5 up to 710.8 (the base fit's shift, computed at another design, fits
+    // in round 1 from 657.5 up to 707.4 (the base fit's shift, computed at another design, fits
     // this data better by chance; the candidates' own shifts cannot).
     const double chi2_state = chi2_of(st, nullptr, nullptr);
     double chi2_now = chi2_state;  // the reference of every gain below
