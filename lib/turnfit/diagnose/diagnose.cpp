@@ -300,6 +300,18 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
       }
     }
   };
+  // The model of state S as it is, fitted again exactly as a candidate's refit is made: its
+  // centroid shift computed where it starts, the refits' settings, the shift followed when
+  // `follow`, taken on to convergence (the null refits below). Throws what the fit throws.
+  auto refit_as_is = [&](const State& S, bool follow, State& w, LocalSearchResult& r) {
+    w.n_problem = S.n_problem;
+    w.prob = own_model(S.prob->machine(), S.prob->variables(), S.x);
+    r = local_search(*w.prob, S.x, rs);
+    evaluations += r.evaluations;
+    w.x = r.x;
+    if (follow) follow_shift(w, r);
+    polish(w, r);
+  };
   log("base fit of " + std::to_string(p.variables().size()) + " design variables with that noise");
   out.base_fit = local_search(*st.prob, x_start, fs);
   evaluations += out.base_fit.evaluations;
@@ -898,13 +910,7 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
     bool have_null = false;
     if (s.null_refit) {
       try {
-        null_state.n_problem = st.n_problem;
-        null_state.prob = own_model(st.prob->machine(), st.prob->variables(), st.x);
-        null_fit = local_search(*null_state.prob, st.x, rs);
-        evaluations += null_fit.evaluations;
-        null_state.x = null_fit.x;
-        if (selected.empty()) follow_shift(null_state, null_fit);  // as a refit of round 1 is
-        polish(null_state, null_fit);
+        refit_as_is(st, selected.empty(), null_state, null_fit);  // the shift followed as a refit of round 1's is
         chi2_now = chi2_of(null_state, nullptr, nullptr);
         have_null = true;
         log("  the model as it is, refitted as a candidate is: chi2 " + cli::fmt(chi2_state, 6) + " -> " +
@@ -1275,12 +1281,8 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
     if (s.null_refit) {
       try {
         State w;
-        w.n_problem = st.n_problem;
-        w.prob = own_model(st.prob->machine(), st.prob->variables(), st.x);
-        LocalSearchResult r0 = local_search(*w.prob, st.x, rs);
-        evaluations += r0.evaluations;
-        w.x = r0.x;
-        polish(w, r0);
+        LocalSearchResult r0;
+        refit_as_is(st, false, w, r0);
         const double c0 = chi2_of(w, nullptr, nullptr);
         log("  the model with every effect, refitted as the reduced ones are: chi2 " + cli::fmt(c2_full, 6) + " -> " +
             cli::fmt(c0, 6));
