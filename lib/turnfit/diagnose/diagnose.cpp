@@ -123,10 +123,11 @@ json ambiguous_rivals(const std::vector<Rival>& rivals, int k_selected, double o
                       double margin, double window) {
   json list = json::array();
   const double c = std::max(1.0, overdispersion);
+  std::set<int> groups;
   for (const auto& r : rivals) {
     const double dbic = r.dchi2 / c - r.k * log_n;
     const double gap = r.gap_chi2 / c - (k_selected - r.k) * log_n;
-    if (dbic > margin && gap < window) {
+    if (dbic > margin && gap < window && groups.insert(r.group).second) {
       json e = r.info;
       e["delta_bic"] = dbic;
       list.push_back(e);
@@ -523,6 +524,7 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
   std::vector<Selected> selected;
   LocalSearchResult st_fit = out.base_fit;  // the fit of the state st (every variable it holds)
   std::map<std::string, json> cand_report;  // label -> report row (the last round's screen)
+  std::map<std::string, json> screen_status;  // label -> its status at its first screen
   std::vector<double> e_state;
   Linear L;
   MatrixXd atom_cols;  // data rows x atoms, at the current state
@@ -819,6 +821,7 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
       auto it = cand_report.find(c.label);
       if (it == cand_report.end()) {
         cand_report[c.label] = j;
+        screen_status[c.label] = j["status"];
       } else {
         it->second["last_round"] = {{"round", round},
                                     {"delta_chi2", j["delta_chi2"]},
@@ -1125,7 +1128,7 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
     // The refits that decide the round, taken on to convergence: those within `polish_window`
     // of the best chi2 (the name and its ambiguity rest on them), and those that stopped short
     // of half their screen (a large effect's refit from the linear step: a 90 G bump's gained
-    // 137 of a screen of 372). The strongest screens first, at most `polish_refits`.
+    // 137 of a screen of 372). The best chi2 first, at most `polish_refits`.
     {
       const double best_c2 = chi2_now - best_gain();
       std::vector<Refit*> todo;
@@ -1133,7 +1136,7 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
         if (rf.r.termination == "NO_CONVERGENCE" &&
             (rf.c2 - best_c2 <= s.polish_window || chi2_now - rf.c2 < s.screen_trust * rf.row->sc.dchi2))
           todo.push_back(&rf);
-      std::stable_sort(todo.begin(), todo.end(), [](const Refit* a, const Refit* b) { return a->row->sc.dchi2 > b->row->sc.dchi2; });
+      std::stable_sort(todo.begin(), todo.end(), [](const Refit* a, const Refit* b) { return a->c2 < b->c2; });
       if (todo.size() > static_cast<size_t>(s.polish_refits)) todo.resize(static_cast<size_t>(s.polish_refits));
       for (Refit* rf : todo) {
         const auto t0 = std::chrono::steady_clock::now();
@@ -1189,15 +1192,26 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
     // so that the ambiguity is judged at the end on the final model's scale (ambiguous_with);
     // the list logged here is on this round's scale.
     std::vector<Rival> rv;
+    std::vector<const Candidate*> rv_cand;  // each rival's candidate: one group per distinct effect
+    auto add_rival = [&](const Candidate& c, const char* from, double gap, double dchi2) {
+      if (!(dchi2 - k_of(c) * logN > s.margin)) return;  // cannot pass on any scale c >= 1
+      int group = static_cast<int>(rv.size());
+      for (size_t q = 0; q < rv.size(); ++q)
+        if (same_effect(*rv_cand[q], c)) {
+          group = rv[q].group;
+          break;
+        }
+      rv.push_back({{{"label", c.label}, {"type", c.type}, {"instance", c.instance}, {"from", from}}, gap, dchi2, k_of(c), group});
+      rv_cand.push_back(&c);
+    };
     for (auto& rf : refits)
       if (&rf != best && rf.row->held > 0 && !same_effect(*rf.row->c, *best->row->c))
-        rv.push_back({{{"label", rf.row->c->label}, {"type", rf.row->c->type}, {"instance", rf.row->c->instance},
-                       {"from", "refit"}},
-                      best->dchi2 - rf.dchi2, rf.dchi2, k_of(*rf.row->c)});
+        add_rival(*rf.row->c, "refit", best->dchi2 - rf.dchi2, rf.dchi2);
     // And candidates the linear screen cannot tell from the selected one (their screened
     // Delta BIC within the ambiguity of its own): a refit that stopped short of its valley
     // floor must not decide between signatures the data do not separate (four cavities' voltage
-    // tilts, on a blind tuning case, screened within 2 of each other and refitted 46-131).
+    // tilts, on a blind tuning case, screened within 2 of each other and refitted 46-131). Such a
+    // screen joins its refit's group, after every refit: it speaks when the refit does not.
     {
       const Row* sel_row = best->row;
       for (const auto& row : screened) {
@@ -1207,17 +1221,7 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
         bool refitted = false;
         for (const auto& rf : refits)
           refitted = refitted || (rf.row == &row && rf.dchi2 >= s.from_start_shortfall * row.sc.dchi2);
-        if (refitted) continue;
-        bool have = false;  // one entry per distinct effect
-        for (const auto& r : rv) {
-          const Candidate* other = nullptr;
-          for (const auto& r2 : screened)
-            if (r2.c->label == r.info["label"]) other = r2.c;
-          have = have || r.info["label"] == row.c->label || (other && same_effect(*other, *row.c));
-        }
-        if (!have)
-          rv.push_back({{{"label", row.c->label}, {"type", row.c->type}, {"instance", row.c->instance}, {"from", "screen"}},
-                        sel_row->sc.dchi2 - row.sc.dchi2, row.sc.dchi2, k_of(*row.c)});
+        if (!refitted) add_rival(*row.c, "screen", sel_row->sc.dchi2 - row.sc.dchi2, row.sc.dchi2);
       }
     }
     const json competitors = ambiguous_with(rv, k_of(*best->row->c), 1.0);
@@ -1272,9 +1276,12 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
   // sector error in the machine, ended at chi2/dof 1.53 and was called unexplained), and every
   // loss is divided by c before it is compared (quasi-likelihood, the overdispersion taken from
   // the largest model as in QAIC). A lone effect is checked too when c > 1.
-  bool state_moved = false;  // by a null refit, since the state was last measured
+  // c is taken once, from the whole model (after its first null refit), and held: a drop lets
+  // the missing physics into the reduced model's chi2, which would inflate c and ease the next.
   auto overdispersion = [&] { return std::max(1.0, out.after.chi2_per_dof); };
-  while (selected.size() >= 2 || (selected.size() == 1 && overdispersion() > 1)) {
+  double chat = overdispersion();
+  bool chat_fixed = false;
+  while (selected.size() >= 2 || (selected.size() == 1 && chat > 1)) {
     // The losses against the whole model refitted as the reduced ones are (its own shift, the
     // refits' settings): the null refit of the rounds above.
     double c2_full = chi2_of(st, nullptr, nullptr);
@@ -1289,18 +1296,18 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
         if (c0 < c2_full) {  // the same model, better fitted: it is the state
           st = std::move(w);
           st_fit = std::move(r0);
-          state_moved = true;
+          measure_state();
         }
         c2_full = c0;
       } catch (const Error& err) {
         log("  the null refit failed (losses are taken against the state): " + std::string(err.what()));
       }
     }
-    if (state_moved) {
-      measure_state();
-      state_moved = false;
+    if (!chat_fixed) {
+      chat = overdispersion();
+      chat_fixed = true;
+      if (selected.size() == 1 && chat <= 1) break;
     }
-    const double chat = overdispersion();
     if (chat > 1) log("  the whole model's chi2/dof is " + cli::fmt(chat, 4) + ": every loss is divided by it");
     int drop = -1;
     size_t drop_row = 0;  // its row in out.eliminations
@@ -1374,9 +1381,7 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
     st = std::move(drop_state);
     st_fit = std::move(drop_fit);
     measure_state();
-    state_moved = false;
   }
-  if (state_moved) measure_state();
 
   // The ambiguity on the final model's scale: its chi2 per degree of freedom c (at least 1)
   // divides every gain and every distance between rivals (QBIC). On report run M's case06 the
@@ -1388,7 +1393,7 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
     if (j.contains("status") && (j["status"] == "ambiguous" || j["status"] == "selected-ambiguous"))
       j["status"] = j["status"] == "selected-ambiguous" ? json("selected")
                     : j.contains("last_round")          ? j["last_round"]["status"]
-                                                        : json("candidate");
+                                                        : screen_status[label];
   for (size_t k = 0; k < selected.size(); ++k) {
     const Selected& sk = selected[k];
     const json comp = ambiguous_with(sk.rivals, k_of(*sk.cand), out.overdispersion);
@@ -1396,7 +1401,8 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
     cand_report[sk.cand->label]["status"] = comp.empty() ? "selected" : "selected-ambiguous";
     for (const auto& e : comp) {
       const std::string l = e["label"];
-      if (cand_report.count(l) && cand_report[l]["status"] != "selected" && cand_report[l]["status"] != "selected-ambiguous")
+      if (cand_report.count(l) && cand_report[l]["status"] != "selected" && cand_report[l]["status"] != "selected-ambiguous" &&
+          cand_report[l]["status"] != "dropped")
         cand_report[l]["status"] = "ambiguous";
     }
     if (!comp.empty()) {

@@ -128,8 +128,8 @@ struct DiagnoseSettings {
   /// linearization error (0: none).
   int siblings = 6;
   /// A fit that ended for want of iterations is taken on from where it stopped, at most this
-  /// many times (0: never): the state before each screen, the elimination fits and the refits
-  /// below.
+  /// many times (0: never): the state before each screen, the null refits, the elimination fits
+  /// and the refits below.
   int polish_passes = 3;
   /// Each round refits the model as it is, as a candidate's refit is made (its own centroid
   /// shift, the refits' settings), and measures every candidate's gain against it.
@@ -161,18 +161,20 @@ struct DiagnoseSettings {
 };
 
 /// A candidate that passed beside a selected one in its round (a refit, or a screen whose refit
-/// fell short): its chi2 gain, its distance in chi2 below the selected one's gain, its parameters.
+/// fell short or never was).
 struct Rival {
   nlohmann::json info;  ///< label, type, instance, from ("refit" or "screen")
-  double gap_chi2 = 0;
-  double dchi2 = 0;
-  int k = 0;
+  double gap_chi2 = 0;  ///< the selected one's chi2 gain less this one's
+  double dchi2 = 0;     ///< this one's chi2 gain
+  int k = 0;            ///< its parameters
+  int group = 0;        ///< rivals of one distinct effect share it (a refit and its screen, bumps within a width)
 };
 
 /// The rivals ambiguous with a selected effect of k_selected parameters when every chi2 is divided
 /// by the overdispersion c (at least 1; quasi-likelihood, QBIC = chi2 / c + k ln N): those that
 /// pass on their own on that scale (Delta QBIC above margin) and whose QBIC lies within `window`
-/// of the selected one's. Each entry is the rival's info with its delta_bic on that scale.
+/// of the selected one's, the first of each group in the order given. Each entry is the rival's
+/// info with its delta_bic on that scale.
 nlohmann::json ambiguous_rivals(const std::vector<Rival>& rivals, int k_selected, double overdispersion, double log_n,
                                 double margin, double window);
 

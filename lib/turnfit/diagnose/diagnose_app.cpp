@@ -74,7 +74,7 @@ void add_diagnose_options(CLI::App& app, DiagnoseOptions& o) {
       ->check(CLI::Range(0.0, 1.0));
   app.add_option("--polish-passes", o.settings.polish_passes,
                  "Take a fit that ran out of iterations on from where it stopped, at most this many times: the "
-                 "state before each screen, the elimination fits, and the refits within 30 in chi2 of a round's "
+                 "state before each screen, the null refits, the elimination fits, and the refits within 30 in chi2 of a round's "
                  "best or short of --screen-trust of their screen (default 3; 0: never)")
       ->check(CLI::Range(0, 20));
   app.add_option("--scan-noise", o.scan_noise,
