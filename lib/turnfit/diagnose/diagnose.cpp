@@ -301,17 +301,22 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
       }
     }
   };
-  // The model of state S as it is, fitted again exactly as a candidate's refit is made: its
-  // centroid shift computed where it starts, the refits' settings, the shift followed when
-  // `follow`, taken on to convergence (the null refits below). Throws what the fit throws.
-  auto refit_as_is = [&](const State& S, bool follow, State& w, LocalSearchResult& r) {
-    w.n_problem = S.n_problem;
-    w.prob = own_model(S.prob->machine(), S.prob->variables(), S.x);
-    r = local_search(*w.prob, S.x, rs);
+  // A model of its own (machine m, variables vars) fitted from x as a candidate's refit is
+  // made: its centroid shift computed where it starts, the refits' settings, the shift followed
+  // when `follow`, taken on to convergence. The null refits below (the state's model as it is)
+  // and the elimination's fits (an effect taken out). Throws what the fit throws.
+  auto refit_model = [&](const Machine& m, const std::vector<TurnVariable>& vars, const std::vector<double>& x,
+                         size_t n_problem, bool follow, State& w, LocalSearchResult& r) {
+    w.n_problem = n_problem;
+    w.prob = own_model(m, vars, x);
+    r = local_search(*w.prob, x, rs);
     evaluations += r.evaluations;
     w.x = r.x;
     if (follow) follow_shift(w, r);
     polish(w, r);
+  };
+  auto refit_as_is = [&](const State& S, bool follow, State& w, LocalSearchResult& r) {
+    refit_model(S.prob->machine(), S.prob->variables(), S.x, S.n_problem, follow, w, r);
   };
   log("base fit of " + std::to_string(p.variables().size()) + " design variables with that noise");
   out.base_fit = local_search(*st.prob, x_start, fs);
@@ -524,7 +529,6 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
   std::vector<Selected> selected;
   LocalSearchResult st_fit = out.base_fit;  // the fit of the state st (every variable it holds)
   std::map<std::string, json> cand_report;  // label -> report row (the last round's screen)
-  std::map<std::string, json> screen_status;  // label -> its status at its first screen
   std::vector<double> e_state;
   Linear L;
   MatrixXd atom_cols;  // data rows x atoms, at the current state
@@ -821,14 +825,13 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
       auto it = cand_report.find(c.label);
       if (it == cand_report.end()) {
         cand_report[c.label] = j;
-        screen_status[c.label] = j["status"];
       } else {
         it->second["last_round"] = {{"round", round},
                                     {"delta_chi2", j["delta_chi2"]},
                                     {"held_out_gain", j["held_out_gain"]},
                                     {"status", j["status"]}};
         const std::string was = it->second["status"];
-        if (was != "selected" && was != "selected-ambiguous" && was != "ambiguous") it->second["status"] = j["status"];
+        if (was != "selected") it->second["status"] = j["status"];
       }
     }
 
@@ -1227,8 +1230,7 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
     const json competitors = ambiguous_with(rv, k_of(*best->row->c), 1.0);
     round_rep["chosen"] = best->row->c->label;
     out.rounds.push_back(round_rep);
-    cand_report[best->row->c->label]["status"] = competitors.empty() ? "selected" : "selected-ambiguous";
-    for (const auto& comp : competitors) cand_report[comp["label"].get<std::string>()]["status"] = "ambiguous";
+    cand_report[best->row->c->label]["status"] = "selected";  // its ambiguity and its rivals' at the end
     log("  selected " + best->row->c->label + (competitors.empty() ? "" : " (ambiguous with " + std::to_string(competitors.size()) + ")"));
 
     // The selected effect's entry for the report, from the refit's values and uncertainties.
@@ -1245,7 +1247,6 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
                 {"ambiguous", !competitors.empty()}};
     if (c.discrete) eff["evidence"] = {{"scale", best->row->sc.c[0]}, {"scale_sigma", std::sqrt(best->row->sc.cov(0, 0))}};
     out.effects.push_back(eff);
-    if (!competitors.empty()) out.ambiguous.push_back({{"selected", c.label}, {"effects", competitors}});
     // Its signature at the fitted size, with the variables' share taken off (linear).
     sel.signature_mm.assign(N, std::nan(""));
     {
@@ -1333,14 +1334,9 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
         x.push_back(st.x[q]);
       }
       State red;
-      red.n_problem = st.n_problem;
       LocalSearchResult r;
       try {
-        red.prob = own_model(v, nv, x);
-        r = local_search(*red.prob, x, rs);
-        evaluations += r.evaluations;
-        red.x = r.x;
-        polish(red, r);
+        refit_model(v, nv, x, st.n_problem, false, red, r);
       } catch (const Error& err) {
         log("  without " + c.label + ": the refit failed: " + std::string(err.what()));
         continue;
@@ -1374,10 +1370,6 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
         q -= static_cast<size_t>(std::count_if(gone.begin(), gone.end(), [&](size_t g) { return g < q; }));
     selected.erase(selected.begin() + drop);
     out.effects.erase(static_cast<size_t>(drop));
-    json kept = json::array();
-    for (const auto& a : out.ambiguous)
-      if (a["selected"] != label) kept.push_back(a);
-    out.ambiguous = kept;
     st = std::move(drop_state);
     st_fit = std::move(drop_fit);
     measure_state();
@@ -1388,12 +1380,6 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
   // sector named (6) led the true one (7) by 8.0 in chi2 in its round, both from whole fits,
   // and the final model ended at chi2/dof 1.38.
   out.overdispersion = overdispersion();
-  out.ambiguous = json::array();
-  for (auto& [label, j] : cand_report)
-    if (j.contains("status") && (j["status"] == "ambiguous" || j["status"] == "selected-ambiguous"))
-      j["status"] = j["status"] == "selected-ambiguous" ? json("selected")
-                    : j.contains("last_round")          ? j["last_round"]["status"]
-                                                        : screen_status[label];
   for (size_t k = 0; k < selected.size(); ++k) {
     const Selected& sk = selected[k];
     const json comp = ambiguous_with(sk.rivals, k_of(*sk.cand), out.overdispersion);
