@@ -56,11 +56,13 @@ struct Case {
 int main(int argc, char** argv) {
   int repeat = 15;
   size_t particles = 64;
+  bool breakdown = false;
   for (int i = 1; i < argc; ++i) {
     if (!std::strcmp(argv[i], "--repeat") && i + 1 < argc) repeat = std::max(1, std::atoi(argv[++i]));
     else if (!std::strcmp(argv[i], "--particles") && i + 1 < argc) particles = std::max(1, std::atoi(argv[++i]));
+    else if (!std::strcmp(argv[i], "--breakdown")) breakdown = true;
     else {
-      std::fprintf(stderr, "usage: bench_speed [--repeat N] [--particles N]\n");
+      std::fprintf(stderr, "usage: bench_speed [--repeat N] [--particles N] [--breakdown]\n");
       return 64;
     }
   }
@@ -107,6 +109,48 @@ int main(int argc, char** argv) {
     std::printf("%-14s %14.2f %12.2f %7.2fx %16.2e\n", c.name.c_str(), median(t_ref), median(t_fast),
                 median(t_ref) / median(t_fast), worst_dr(a, b));
     loaded.push_back(std::move(L));
+  }
+
+  if (breakdown) {
+    // What each field effect of the truth costs a single track: the truth without it, and the
+    // nominal machine with it alone (the same coils as the truth), interleaved run by run.
+    std::printf("\n== The truth's field effects, one at a time (single track, default stepper, median of %d)\n", repeat);
+    const Loaded& T = loaded[1];
+    struct Variant {
+      std::string name;
+      Machine m;
+    };
+    std::vector<Variant> vs;
+    const auto without = [&](const std::string& name, auto clear) {
+      Machine m = T.m;
+      clear(m.effect_set);
+      vs.push_back({name, m});
+    };
+    using Fx = Effects;
+    without("truth", [](Fx&) {});
+    without("- field-harmonic", [](Fx& e) { e.field_harmonics.clear(); });
+    without("- sector-strength", [](Fx& e) { e.sector_strengths.clear(); });
+    without("- trimcoil-sectors", [](Fx& e) { e.trimcoil_sectors.clear(); });
+    without("no field effect", [](Fx& e) {
+      e.field_harmonics.clear();
+      e.sector_strengths.clear();
+      e.trimcoil_sectors.clear();
+    });
+    without("nothing (coils 0)", [](Fx& e) { e = Fx{}; });
+    for (auto& t : vs.back().m.trimcoils) t.bmax_T = 0;
+    std::vector<TrackModel> models;
+    for (const auto& v : vs) models.push_back(make_track_model(v.m));
+    std::vector<std::vector<double>> times(vs.size());
+    for (int k = 0; k < repeat; ++k)
+      for (size_t v = 0; v < vs.size(); ++v) {
+        std::vector<TurnRecord> a;
+        const auto t0 = Clock::now();
+        track_particle(models[v], T.s0, T.ts, a);
+        times[v].push_back(seconds_since(t0) * 1e3);
+      }
+    for (size_t v = 0; v < vs.size(); ++v)
+      std::printf("%-22s %8.2f ms  %5.2fx of nothing\n", vs[v].name.c_str(), median(times[v]),
+                  median(times[v]) / median(times.back()));
   }
 
   std::printf("\n== Bunches of %zu particles, 182 turns, one thread (ring8's bunch block; PSI: 1 mm mrad, "

@@ -143,3 +143,44 @@ TEST_CASE("coil sum: linear in every coil strength (an optimizer's finite differ
   CHECK(largest > 0);
   CHECK(worst <= 1e-15);
 }
+
+TEST_CASE("coil sum: a kept hint gives value()'s numbers along a particle's radii, across pieces and gaps",
+          "[coil-sum]") {
+  // ring8's coils, all excited: pieces between their support edges, and radii below and above
+  // every support.
+  const Machine m = excited_ring8();
+  const TrackModel model = make_track_model(m);
+  const TrimCoilSum& sum = model.coil_sum;
+  REQUIRE(!sum.empty());
+  const double lo = model.map.grid().r_min_m() - 0.05, hi = model.map.grid().r_max_m() + 0.05;
+  // Walks as a particle's radius moves: small steps, node-sized and piece-sized jumps, both
+  // directions, and radii outside every piece. The hint must never change a number.
+  std::mt19937_64 rng(11);
+  std::uniform_real_distribution<double> U(0, 1);
+  TrimCoilSum::Hint hint;
+  double r = lo;
+  long nonzero = 0;
+  for (int k = 0; k < 200000; ++k) {
+    const double size = k % 3 == 0 ? 2e-3 : (k % 3 == 1 ? 2e-5 : 0.2);
+    r += size * (U(rng) - 0.45);
+    if (r < lo || r > hi) r = lo + (hi - lo) * U(rng);
+    double a, da, b, db;
+    sum.value_near(r, hint, a, da);
+    sum.value(r, b, db);
+    nonzero += b != 0;
+    REQUIRE(a == b);
+    REQUIRE(da == db);
+  }
+  CHECK(nonzero > 1000);
+  // Exactly at piece ends and beside them, from a hint kept elsewhere.
+  for (int k = 0; k <= 20000; ++k) {
+    const double x = lo + (hi - lo) * k / 20000.0;
+    for (double rr : {x, std::nextafter(x, 0.0), std::nextafter(x, 10.0)}) {
+      double a, da, b, db;
+      sum.value_near(rr, hint, a, da);
+      sum.value(rr, b, db);
+      REQUIRE(a == b);
+      REQUIRE(da == db);
+    }
+  }
+}

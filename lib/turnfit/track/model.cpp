@@ -5,6 +5,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <type_traits>
 #include <utility>
 
 #include "turnfit/field/load.hpp"
@@ -19,13 +20,14 @@ double ProbeLine::crossing_azimuth(double r_m) const {
 }
 
 double TrackModel::sector_centre(double r_m, double& dc_dr) const {
-  const double x = (r_m - sector_r_mid_m) / sector_r_half_m;
-  double c = 0, d = 0;
-  for (size_t k = sector_centre_coef.size(); k-- > 0;) {
-    d = d * x + c;
-    c = c * x + sector_centre_coef[k];
-  }
-  dc_dr = d / sector_r_half_m;
+  // (Inside a sample's dependency chain from the radius to the field: a stored inverse instead
+  // of two divisions, and Estrin's scheme, two levels of products where Horner's has four.)
+  const double x = (r_m - sector_r_mid_m) * sector_r_inv_half, x2 = x * x;
+  const auto& a = sector_centre_coef;
+  static_assert(std::tuple_size<std::decay_t<decltype(a)>>::value == 5, "a quartic");
+  const double c = (a[0] + a[1] * x) + x2 * ((a[2] + a[3] * x) + x2 * a[4]);
+  const double d = (a[1] + 2 * a[2] * x) + x2 * (3 * a[3] + 4 * a[4] * x);
+  dc_dr = d * sector_r_inv_half;
   return c;
 }
 
@@ -36,6 +38,7 @@ void fit_sector_centre(TrackModel& t) {
   const double period = 2 * kPi / n;
   t.sector_r_mid_m = 0.5 * (g.r_min_m() + g.r_max_m());
   t.sector_r_half_m = std::max(0.5 * (g.r_max_m() - g.r_min_m()), 1e-9);
+  t.sector_r_inv_half = 1 / t.sector_r_half_m;
   std::vector<double> x, phase, weight;
   double amax = 0, prev = 0, total = 0;
   for (int i = 0; i < g.nr; ++i) {
@@ -91,18 +94,25 @@ void TrackModel::add_coils(double r_m, double th, const FieldSample& main, doubl
             centre);
     return;
   }
-  // Without hints (the reference stepper), places nobody keeps: each lookup searches.
-  CoilHints none;
-  CoilHints& h = hints ? *hints : none;
-  if (!coil_sum.empty())
-    coil_sum.add_near(r_m, h.all, main.bz_T, main.dbz_dr_T_m, main.dbz_dth_T, threshold_T, out.bz_T, out.dbz_dr_T_m,
-                      out.dbz_dth_T);
+  // Without hints (the reference stepper), places nobody keeps: each lookup searches
+  // (TrimCoilSum::add, value()'s numbers).
+  if (!coil_sum.empty()) {
+    if (hints)
+      coil_sum.add_near(r_m, hints->all, main.bz_T, main.dbz_dr_T_m, main.dbz_dth_T, threshold_T, out.bz_T,
+                        out.dbz_dr_T_m, out.dbz_dth_T);
+    else
+      coil_sum.add(r_m, main.bz_T, main.dbz_dr_T_m, main.dbz_dth_T, threshold_T, out.bz_T, out.dbz_dr_T_m,
+                   out.dbz_dth_T);
+  }
   for (size_t k = 0; k < window_sums.size(); ++k) {
     const WindowSum& w = window_sums[k];
     if (!coils[w.window_of].in_azimuth(th, centre)) continue;
-    TrimCoilSum::Hint unkept;
-    w.sum.add_near(r_m, k < kHintedWindows ? h.window[k] : unkept, main.bz_T, main.dbz_dr_T_m, main.dbz_dth_T,
-                   threshold_T, out.bz_T, out.dbz_dr_T_m, out.dbz_dth_T);
+    if (hints && k < kHintedWindows)
+      w.sum.add_near(r_m, hints->window[k], main.bz_T, main.dbz_dr_T_m, main.dbz_dth_T, threshold_T, out.bz_T,
+                     out.dbz_dr_T_m, out.dbz_dth_T);
+    else
+      w.sum.add(r_m, main.bz_T, main.dbz_dr_T_m, main.dbz_dth_T, threshold_T, out.bz_T, out.dbz_dr_T_m,
+                out.dbz_dth_T);
   }
   for (size_t i : single_coils)
     coils[i].add(r_m, th, main.bz_T, main.dbz_dr_T_m, main.dbz_dth_T, threshold_T, out.bz_T, out.dbz_dr_T_m,
@@ -211,9 +221,10 @@ void TrackModel::add_coils_lanes(int n, const double* r, double th, const double
     const TrimCoilField& c = coils[w.window_of];
     for (int l = 0; l < n; ++l) {
       if (!c.in_azimuth(th, centre[l])) continue;
-      TrimCoilSum::Hint unkept;
-      w.sum.add_near(r[l], k < kHintedWindows ? hints[l]->window[k] : unkept, mb[l], mbr[l], mbt[l], threshold_T,
-                     bz[l], br[l], bt[l]);
+      if (k < kHintedWindows)
+        w.sum.add_near(r[l], hints[l]->window[k], mb[l], mbr[l], mbt[l], threshold_T, bz[l], br[l], bt[l]);
+      else
+        w.sum.add(r[l], mb[l], mbr[l], mbt[l], threshold_T, bz[l], br[l], bt[l]);
     }
   }
   for (size_t i : single_coils)

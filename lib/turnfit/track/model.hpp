@@ -148,7 +148,7 @@ struct TrackModel {
   /// Sector windows (trim coil sector lists, sector-strength) follow it. Zero for a map
   /// without sectors. make_track_model fits it only when `sector_windows` (something uses it).
   std::array<double, 5> sector_centre_coef{};
-  double sector_r_mid_m = 0, sector_r_half_m = 1;
+  double sector_r_mid_m = 0, sector_r_half_m = 1, sector_r_inv_half = 1;  ///< (inv_half = 1 / half)
   bool sector_windows = false;
   /// theta_c(r) [rad] and its slope [rad/m].
   double sector_centre(double r_m, double& dc_dr) const;
