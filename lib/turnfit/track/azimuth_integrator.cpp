@@ -390,7 +390,8 @@ inline void fast_eom(double r, double x, double z, double xz, double bz, double 
   // The chain that bounds a single track runs x -> s -> dx -> x (the next stage's x): the
   // vertical part is subtracted first and the field's part added to s last, so that the chain
   // holds one product, one subtraction, the square root and one addition. (In the midplane,
-  // xz = z = 0, these are azimuth_eom's numbers bit for bit.)
+  // xz = z = 0, the numbers are those of the order before, (1 - x^2) - xz^2 and
+  // (s + zt bt) - rib bz, bit for bit; off it they differ by rounding.)
   const double s2 = (1 - xz * xz) - x * x;
   const double s = std::sqrt(std::fabs(s2));
   const double r_s = r / s, inv_s = 1 / s;
