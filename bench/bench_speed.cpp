@@ -6,8 +6,10 @@
 //  2. Bunches of each machine on one thread: a loop of reference single tracks against
 //     track_particles (groups stepped together), in particle-turns per second, with the
 //     largest difference of a crossing against the single-particle default path.
+//  With --breakdown, between the two: what each of the truth's field effects costs a single
+//  track (the truth without it, the variants interleaved run by run).
 //
-// Usage: bench_speed [--repeat N] [--particles N]
+// Usage: bench_speed [--repeat N] [--particles N] [--breakdown]
 #include <algorithm>
 #include <chrono>
 #include <cmath>
