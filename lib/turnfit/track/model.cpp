@@ -94,25 +94,18 @@ void TrackModel::add_coils(double r_m, double th, const FieldSample& main, doubl
             centre);
     return;
   }
-  // Without hints (the reference stepper), places nobody keeps: each lookup searches
-  // (TrimCoilSum::add, value()'s numbers).
-  if (!coil_sum.empty()) {
-    if (hints)
-      coil_sum.add_near(r_m, hints->all, main.bz_T, main.dbz_dr_T_m, main.dbz_dth_T, threshold_T, out.bz_T,
-                        out.dbz_dr_T_m, out.dbz_dth_T);
-    else
-      coil_sum.add(r_m, main.bz_T, main.dbz_dr_T_m, main.dbz_dth_T, threshold_T, out.bz_T, out.dbz_dr_T_m,
-                   out.dbz_dth_T);
-  }
+  // Without hints (the reference stepper), places nobody keeps: each lookup searches.
+  CoilHints none;
+  CoilHints& h = hints ? *hints : none;
+  if (!coil_sum.empty())
+    coil_sum.add_near(r_m, h.all, main.bz_T, main.dbz_dr_T_m, main.dbz_dth_T, threshold_T, out.bz_T, out.dbz_dr_T_m,
+                      out.dbz_dth_T);
   for (size_t k = 0; k < window_sums.size(); ++k) {
     const WindowSum& w = window_sums[k];
     if (!coils[w.window_of].in_azimuth(th, centre)) continue;
-    if (hints && k < kHintedWindows)
-      w.sum.add_near(r_m, hints->window[k], main.bz_T, main.dbz_dr_T_m, main.dbz_dth_T, threshold_T, out.bz_T,
-                     out.dbz_dr_T_m, out.dbz_dth_T);
-    else
-      w.sum.add(r_m, main.bz_T, main.dbz_dr_T_m, main.dbz_dth_T, threshold_T, out.bz_T, out.dbz_dr_T_m,
-                out.dbz_dth_T);
+    TrimCoilSum::Hint unkept;
+    w.sum.add_near(r_m, k < kHintedWindows ? h.window[k] : unkept, main.bz_T, main.dbz_dr_T_m, main.dbz_dth_T,
+                   threshold_T, out.bz_T, out.dbz_dr_T_m, out.dbz_dth_T);
   }
   for (size_t i : single_coils)
     coils[i].add(r_m, th, main.bz_T, main.dbz_dr_T_m, main.dbz_dth_T, threshold_T, out.bz_T, out.dbz_dr_T_m,
@@ -221,10 +214,9 @@ void TrackModel::add_coils_lanes(int n, const double* r, double th, const double
     const TrimCoilField& c = coils[w.window_of];
     for (int l = 0; l < n; ++l) {
       if (!c.in_azimuth(th, centre[l])) continue;
-      if (k < kHintedWindows)
-        w.sum.add_near(r[l], hints[l]->window[k], mb[l], mbr[l], mbt[l], threshold_T, bz[l], br[l], bt[l]);
-      else
-        w.sum.add(r[l], mb[l], mbr[l], mbt[l], threshold_T, bz[l], br[l], bt[l]);
+      TrimCoilSum::Hint unkept;
+      w.sum.add_near(r[l], k < kHintedWindows ? hints[l]->window[k] : unkept, mb[l], mbr[l], mbt[l], threshold_T,
+                     bz[l], br[l], bt[l]);
     }
   }
   for (size_t i : single_coils)
