@@ -6,6 +6,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <map>
 #include <random>
 
 #include "ring8_problem.hpp"
@@ -366,14 +367,19 @@ TEST_CASE("diagnose: look-alike sectors are refitted beside the strongest, so th
   auto p = load_turn_problem(tmp.file(
       "sector5.json", "{\"format\": \"turnfit-problem/1\", \"machine\": \"" + ring8("machine.json") + "\", \"peaks\": \"" +
                           peaks + "\", \"bunch\": \"reference\", \"variables\": [\"rinit\", \"prinit\", \"vchange\"]}"));
-  auto run = [&](int siblings) {
+  auto run = [&](int siblings, int whole_fits) {
     DiagnoseSettings s;
+    if (whole_fits > 0) {  // this rule's whole fits alone
+      s.from_start_shortfall = 0;
+      s.challengers = 0;
+    }
     s.threads = 2;
     s.types = {"sector-strength"};
     s.refits = 1;
     s.siblings = siblings;
     s.extra_refits = 0;
     s.max_effects = 1;
+    s.whole_fits = whole_fits;
     return diagnose(*p, p->start(), s);
   };
   auto sectors_refitted = [](const Diagnosis& d) {
@@ -381,8 +387,8 @@ TEST_CASE("diagnose: look-alike sectors are refitted beside the strongest, so th
     for (const auto& r : d.rounds.at(0)["refits"]) labels.push_back(r["label"]);
     return labels;
   };
-  const Diagnosis lone = run(0);
-  const Diagnosis with = run(7);
+  const Diagnosis lone = run(0, 0);
+  const Diagnosis with = run(7, 0);
   CHECK(sectors_refitted(lone).size() == 1);
   const auto labels = sectors_refitted(with);
   CHECK(labels.size() >= 2);
@@ -400,6 +406,38 @@ TEST_CASE("diagnose: look-alike sectors are refitted beside the strongest, so th
   for (const auto& a : with.ambiguous)
     for (const auto& e : a["effects"]) listed = listed || e["label"] == "sector-strength of sector 5";
   CHECK(listed);
+
+  // With whole fits: when two or more refits gain at least whole_fraction of the best, each
+  // whose signature the variables take up all but from_start_visible of is fitted from the
+  // machine's values as well (the report's refit_from_start). The gains from the base fit are
+  // those of the run without whole fits (the same refits, made the same way).
+  const Diagnosis whole = run(7, 10);
+  std::map<std::string, double> gain_before;
+  double best = 0;
+  for (const auto& r : with.rounds.at(0)["refits"]) {
+    gain_before[r["label"]] = r["delta_chi2"].get<double>();
+    best = std::max(best, r["delta_chi2"].get<double>());
+  }
+  int near = 0, eligible = 0, fitted_whole = 0;
+  for (const auto& c : whole.candidates) {
+    if (c["round"] != 1 || !c.contains("refit")) continue;
+    const bool is_near = gain_before.at(c["label"]) >= DiagnoseSettings{}.whole_fraction * best;
+    near += is_near;
+    eligible += is_near && c["visible_fraction"].get<double>() < DiagnoseSettings{}.from_start_visible;
+    if (!c.contains("refit_from_start")) continue;
+    ++fitted_whole;
+    CHECK(is_near);
+    // The kept fit is the better of the two: its gain is at least the whole fit's.
+    CHECK(c["refit"]["delta_chi2"].get<double>() >= c["refit_from_start"]["delta_chi2"].get<double>() - 1e-9);
+  }
+  CHECK(near >= 2);  // this case has look-alikes near the best
+  CHECK(fitted_whole == eligible);
+  CHECK(fitted_whole >= 1);
+  REQUIRE(whole.effects.size() == 1);
+  bool named = whole.effects[0]["parameters"]["sector"] == 5;
+  for (const auto& a : whole.ambiguous)
+    for (const auto& e : a["effects"]) named = named || e["label"] == "sector-strength of sector 5";
+  CHECK(named);
 }
 
 TEST_CASE("diagnose: each fitted model has its own bunch centre, so a large effect's refit reaches the floor",

@@ -149,6 +149,12 @@ struct DiagnoseSettings {
   /// the next distinct candidate, that one is refitted too, at most `extra_refits` (0: never).
   int extra_refits = 4;
   double screen_trust = 0.5;
+  /// Round 1: when two or more refits gain at least `whole_fraction` of the round's best gain,
+  /// each of them (whose signature the variables take up all but `from_start_visible` of) is
+  /// fitted whole as well, the best first, at most `whole_fits` (0: never): the base fit may have
+  /// half absorbed a large effect, and from there the true instance's valley is out of reach.
+  int whole_fits = 10;
+  double whole_fraction = 0.7;
   /// Round 1: when a whole fit (from the machine's values) comes within `challenge_fraction`
   /// of the round's best chi2 gain, up to `challengers` refits within that fraction that had
   /// none (and whose signature the variables take up all but `from_start_visible` of) are
