@@ -66,8 +66,8 @@ void add_diagnose_options(CLI::App& app, DiagnoseOptions& o) {
   app.add_option("--screen-trust", o.settings.screen_trust, "See --extra-refits (default 0.5)")
       ->check(CLI::Range(0.0, 10.0));
   app.add_option("--whole-fits", o.settings.whole_fits,
-                 "Round 1: fit up to this many refits that gain at least --whole-fraction of the round's best "
-                 "gain from the machine's values too, the best first (default 10; 0: never)")
+                 "Round 1: when two or more refits gain at least --whole-fraction of the round's best gain, fit up "
+                 "to this many of them from the machine's values too, the best first (default 10; 0: never)")
       ->check(CLI::Range(0, 100));
   app.add_option("--whole-fraction", o.settings.whole_fraction, "See --whole-fits (default 0.7)")
       ->check(CLI::Range(0.0, 1.0));
