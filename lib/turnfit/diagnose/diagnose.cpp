@@ -983,6 +983,12 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
       }
       rf.wall_s += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
     };
+    // Whole fits of the best `limit` of these refits (the lowest chi2 first).
+    auto whole_fits_best_first = [&](std::vector<Refit*> todo, int limit) {
+      std::stable_sort(todo.begin(), todo.end(), [](const Refit* a, const Refit* b) { return a->c2 < b->c2; });
+      if (todo.size() > static_cast<size_t>(limit)) todo.resize(static_cast<size_t>(limit));
+      for (Refit* rf : todo) whole_fit(*rf);
+    };
     auto refit_one = [&](const Row* row, bool primary_pick) {
       const Candidate& c = *row->c;
       Refit rf;
@@ -1131,9 +1137,7 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
         if (!rf.whole && rf.row->sc.visible < s.from_start_visible) todo.push_back(&rf);
       }
       if (near < 2) todo.clear();
-      std::stable_sort(todo.begin(), todo.end(), [](const Refit* a, const Refit* b) { return a->c2 < b->c2; });
-      if (todo.size() > static_cast<size_t>(s.whole_fits)) todo.resize(static_cast<size_t>(s.whole_fits));
-      for (Refit* rf : todo) whole_fit(*rf);
+      whole_fits_best_first(todo, s.whole_fits);
     }
     // Look-alikes on equal terms (round 1). When a whole fit comes within `challenge_fraction`
     // of the best gain, the refits within that fraction of the best that had none get one too:
@@ -1148,9 +1152,7 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
       std::vector<Refit*> behind;
       for (auto& rf : refits)
         if (whole_near && !rf.whole && rf.row->sc.visible < s.from_start_visible && near(rf)) behind.push_back(&rf);
-      std::sort(behind.begin(), behind.end(), [](const Refit* a, const Refit* b) { return a->c2 < b->c2; });
-      if (behind.size() > static_cast<size_t>(s.challengers)) behind.resize(static_cast<size_t>(s.challengers));
-      for (Refit* rf : behind) whole_fit(*rf);
+      whole_fits_best_first(behind, s.challengers);
     }
     // The refits that decide the round, taken on to convergence: those within `polish_window`
     // of the best chi2 (the name and its ambiguity rest on them), and those that stopped short
