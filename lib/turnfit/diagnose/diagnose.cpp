@@ -1007,7 +1007,12 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
       std::vector<double> x = st.x;
       // The variables' linear moves toward the joint optimum, within bounds. A discrete
       // candidate is on at its full size in the refit whatever scale the screen fitted.
-      const VectorXd coef = c.discrete ? VectorXd::Ones(1) : VectorXd(row->sc.c);
+      // The moves are those for the effect's clamped start, not the screen's unclamped estimate.
+      VectorXd coef = VectorXd::Ones(1);
+      if (!c.discrete) {
+        coef.resize(static_cast<Index>(c.params.size()));
+        for (size_t q = 0; q < c.params.size(); ++q) coef[static_cast<Index>(q)] = start_vals[q] - c.params[q].absent;
+      }
       const VectorXd dx = -base.R.triangularView<Eigen::Upper>().solve(base.Qtz + base.Q.transpose() * (row->C * coef));
       const std::vector<double> x_fit = x;
       for (size_t q = 0; q < x.size(); ++q) x[q] = clamp(x[q] + dx[static_cast<Index>(q)], nv[q].lower, nv[q].upper);
