@@ -33,13 +33,13 @@ EffectParam param(const std::string& key, const std::string& unit, std::vector<s
 // The ranges a candidate's refit may search. They must hold every effect whose signature can be
 // seen: a range narrower than the detection limit hides the effect from its own candidate. Until
 // 2026-11-28 a gap bow was held within 20 mm, a bump within 2 mT and a tilt within 0.3, and twelve
-// visible truths of the blind report runs lay outside (bows of main cavities of 79-171 mm, whose
+// visible truths of the blind report runs lay outside (gap bows of 48-171 mm: the main cavities'
 // detection limits are 34-37 mm at the low noise; bumps of 4-9 mT; tilts of 0.33 and 0.34): each
-// was missed or named as something else. Now: a gap bow up to the machine file's own limit (a
-// tenth of the gap's length), a bump up to 10 mT (the blind suite's paper-noise sizes reach 9 mT
-// under its 20 mm cap on the raw displacement), a sector's scale up to 1 %, and a tilt up to 1
-// (the voltage from 0.5 to 1.5 of the profile's across the gap). The range is also the weak prior
-// of the refit (sigma: half of it) and sets its finite-difference step.
+// could only be fitted short or named as something else. Now: a gap bow up to the machine file's
+// own limit (a tenth of the gap's length), a bump up to 10 mT (the blind suite's paper-noise sizes
+// reach 9 mT under its 20 mm cap on the raw displacement), a sector's scale up to 1 %, and a tilt
+// up to 1 (the voltage from 0.5 to 1.5 of the profile's across the gap). The range is also the weak
+// prior of the refit (sigma: half of it) and sets its finite-difference step.
 constexpr double kHarmonicBound_T = 1e-2;
 constexpr double kSectorBound = 1e-2;
 constexpr double kTiltBound = 1.0;
