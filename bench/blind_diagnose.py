@@ -96,7 +96,9 @@ Scoring (per true effect, then per case):
                       nearest in centre and width) says "absorbed" or "not-seen", and the true
                       size is at most twice the detection limit the report gives for it: the
                       tool says no fit of this data can see it. Above twice its own limit the
-                      tool contradicts itself and the effect is "missed". The limit decides, not
+                      tool contradicts itself and the effect is "missed"; so it is above its
+                      limit when the report names another effect in its place (the tool saw
+                      the mismatch and named it wrong: the case is "wrong"). The limit decides, not
                       the status: on ring8 the variables take up over 95 % of every candidate's
                       signature (visible_fraction 1e-6 to 1e-2), so nearly every candidate is
                       "absorbed", and the limit is already the size that passes after that
@@ -766,6 +768,11 @@ def score(case, report):
                 case["notes"].append("%s: its candidate is %s with detection limit %.3g, but the truth's size is %.3g "
                                      "(over twice the limit): counted as missed" % (r["truth"], cand.get("status"),
                                                                                     lim_v, size_v))
+            elif lim_v and size_v > abs(float(lim_v)) and named:
+                r["outcome"] = "missed"
+                case["notes"].append("%s: its candidate is %s with detection limit %.3g, the truth's size is %.3g (over "
+                                     "the limit) and the report names another effect in its place: counted as missed "
+                                     "(the case as wrong)" % (r["truth"], cand.get("status"), lim_v, size_v))
             else:
                 r["outcome"] = "not visible"
             r["params"] = []
