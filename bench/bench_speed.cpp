@@ -6,10 +6,15 @@
 //  2. Bunches of each machine on one thread: a loop of reference single tracks against
 //     track_particles (groups stepped together), in particle-turns per second, with the
 //     largest difference of a crossing against the single-particle default path.
-//  With --breakdown, between the two: what each of the truth's field effects costs a single
+//  3. Designs of the truth, a model each (as an optimizer's or the diagnosis's finite-difference
+//     columns: each design moves one coil or one effect's parameter): tracked one at a time
+//     against together as one group of lanes with a model per lane (track_particles(models,
+//     ...)), and the group's records against each design's alone (bit for bit).
+//  With --breakdown, between 1 and 2: what each of the truth's field effects costs a single
 //  track (the truth without it, the variants interleaved run by run).
 //
-// Usage: bench_speed [--repeat N] [--particles N] [--breakdown]
+// Usage: bench_speed [--repeat N] [--particles N] [--breakdown] [--designs-only]
+// (--designs-only: section 3 alone.)
 #include <algorithm>
 #include <chrono>
 #include <cmath>
@@ -58,13 +63,14 @@ struct Case {
 int main(int argc, char** argv) {
   int repeat = 15;
   size_t particles = 64;
-  bool breakdown = false;
+  bool breakdown = false, only_designs = false;
   for (int i = 1; i < argc; ++i) {
     if (!std::strcmp(argv[i], "--repeat") && i + 1 < argc) repeat = std::max(1, std::atoi(argv[++i]));
     else if (!std::strcmp(argv[i], "--particles") && i + 1 < argc) particles = std::max(1, std::atoi(argv[++i]));
     else if (!std::strcmp(argv[i], "--breakdown")) breakdown = true;
+    else if (!std::strcmp(argv[i], "--designs-only")) only_designs = true;
     else {
-      std::fprintf(stderr, "usage: bench_speed [--repeat N] [--particles N] [--breakdown]\n");
+      std::fprintf(stderr, "usage: bench_speed [--repeat N] [--particles N] [--breakdown] [--designs-only]\n");
       return 64;
     }
   }
@@ -76,8 +82,8 @@ int main(int argc, char** argv) {
   else
     std::printf("(PSI Ring example skipped: shared data not found at %s)\n", TURNFIT_SHARED_DIR);
 
-  std::printf("== Single-particle tracks, 182 turns, one thread, median of %d\n", repeat);
-  std::printf("%-14s %14s %12s %8s %16s\n", "machine", "reference [ms]", "default [ms]", "ratio", "max |dr| [mm]");
+  if (!only_designs) std::printf("== Single-particle tracks, 182 turns, one thread, median of %d\n", repeat);
+  if (!only_designs) std::printf("%-14s %14s %12s %8s %16s\n", "machine", "reference [ms]", "default [ms]", "ratio", "max |dr| [mm]");
   struct Loaded {
     Machine m;
     TrackModel model;
@@ -98,7 +104,7 @@ int main(int argc, char** argv) {
     ref.reference_stepper = true;
     std::vector<double> t_ref, t_fast;
     std::vector<TurnRecord> a, b;
-    for (int k = 0; k < repeat; ++k) {
+    for (int k = 0; k < (only_designs ? 0 : repeat); ++k) {
       a.clear();
       auto t0 = Clock::now();
       track_particle(L.model, L.s0, ref, a);
@@ -108,12 +114,13 @@ int main(int argc, char** argv) {
       track_particle(L.model, L.s0, L.ts, b);
       t_fast.push_back(seconds_since(t0) * 1e3);
     }
-    std::printf("%-14s %14.2f %12.2f %7.2fx %16.2e\n", c.name.c_str(), median(t_ref), median(t_fast),
-                median(t_ref) / median(t_fast), worst_dr(a, b));
+    if (!only_designs)
+      std::printf("%-14s %14.2f %12.2f %7.2fx %16.2e\n", c.name.c_str(), median(t_ref), median(t_fast),
+                  median(t_ref) / median(t_fast), worst_dr(a, b));
     loaded.push_back(std::move(L));
   }
 
-  if (breakdown) {
+  if (breakdown && !only_designs) {
     // What each field effect of the truth costs a single track: the truth without it, and the
     // nominal machine with it alone (the same coils as the truth), interleaved run by run.
     std::printf("\n== The truth's field effects, one at a time (single track, default stepper, median of %d)\n", repeat);
@@ -155,11 +162,11 @@ int main(int argc, char** argv) {
                   median(times[v]) / median(times.back()));
   }
 
-  std::printf("\n== Bunches of %zu particles, 182 turns, one thread (ring8's bunch block; PSI: 1 mm mrad, "
-              "0.05 MeV, 1 deg)\n", particles);
-  std::printf("%-14s %22s %22s %8s %24s\n", "machine", "reference [pt/s]", "default [pt/s]", "ratio",
+  if (!only_designs) std::printf("\n== Bunches of %zu particles, 182 turns, one thread (ring8's bunch block; PSI: "
+                                 "1 mm mrad, 0.05 MeV, 1 deg)\n", particles);
+  if (!only_designs) std::printf("%-14s %22s %22s %8s %24s\n", "machine", "reference [pt/s]", "default [pt/s]", "ratio",
               "max |dr| vs single [mm]");
-  for (size_t c = 0; c < loaded.size(); ++c) {
+  for (size_t c = 0; c < (only_designs ? 0 : loaded.size()); ++c) {
     Loaded& L = loaded[c];
     Bunch b = L.m.bunch ? *L.m.bunch : Bunch{};
     if (!L.m.bunch) {
@@ -191,6 +198,59 @@ int main(int argc, char** argv) {
     }
     std::printf("%-14s %22.0f %22.0f %7.2fx %24.2e\n", cases[c].name.c_str(), pt / t_ref, pf / t_fast,
                 (pf / t_fast) / (pt / t_ref), worst);
+  }
+
+  {
+    // 16 designs of the truth: each moves one number (a coil's bmax, the harmonic's amplitude,
+    // radius or phase, the sector strength) by a small step, as a Jacobian's columns do.
+    const Loaded& T = loaded[1];
+    std::vector<Machine> ms;
+    for (int d = 0; d < 16; ++d) {
+      Machine m = T.m;
+      const double e = 1e-4 * (d + 1);
+      switch (d % 4) {
+        case 0: m.trimcoils[static_cast<size_t>(d) % m.trimcoils.size()].bmax_T *= 1 + e; break;
+        case 1: m.effect_set.field_harmonics[0].amplitude_T *= 1 + e; break;
+        case 2: m.effect_set.field_harmonics[0].r_mm += e * 100; break;
+        default: m.effect_set.sector_strengths[0].relative *= 1 + e; break;
+      }
+      ms.push_back(m);
+    }
+    // Built as an optimizer builds them: from one read of the files, so that they share the
+    // map (lanes go through grid steps together only on one map).
+    const ModelFiles files = read_model_files(T.m);
+    std::vector<TrackModel> models;
+    for (const auto& m : ms) models.push_back(make_track_model(m, {}, &files));
+    std::vector<const TrackModel*> mp;
+    for (const auto& m : models) mp.push_back(&m);
+    const size_t n = models.size();
+    std::vector<ParticleState> starts(n, T.s0);
+    std::vector<std::vector<TurnRecord>> alone(n), together(n);
+    std::vector<TrackEnd> ends(n);
+    std::vector<double> t_alone, t_together;
+    double turns = 0;
+    for (int k = 0; k < repeat; ++k) {
+      auto t0 = Clock::now();
+      turns = 0;
+      for (size_t i = 0; i < n; ++i) {
+        alone[i].clear();
+        turns += track_particle(models[i], starts[i], T.ts, alone[i]).turns;
+      }
+      t_alone.push_back(seconds_since(t0));
+      for (auto& t : together) t.clear();
+      t0 = Clock::now();
+      track_particles(mp.data(), starts.data(), n, T.ts, together.data(), ends.data());
+      t_together.push_back(seconds_since(t0));
+    }
+    double worst = 0;
+    for (size_t i = 0; i < n; ++i) worst = std::max(worst, worst_dr(alone[i], together[i]));
+    std::printf("\n== %zu designs of ring8's truth, a model each, 182 turns, one thread, median of %d\n", n, repeat);
+    std::printf("%-22s %12s %16s\n", "", "ms per design", "particle-turns/s");
+    std::printf("%-22s %12.2f %16.0f\n", "one at a time", median(t_alone) * 1e3 / n, turns / median(t_alone));
+    std::printf("%-22s %12.2f %16.0f\n", "one group, lane models", median(t_together) * 1e3 / n,
+                turns / median(t_together));
+    std::printf("ratio %.2fx; the group's records against each design alone: max |dr| %.2e mm\n",
+                median(t_alone) / median(t_together), worst);
   }
   return 0;
 }

@@ -200,24 +200,35 @@ TEST_CASE("fast track: particles with a model each (an optimizer's designs) as e
   // Models made from one read of the files share the map, so their particles go through the
   // grid steps together, each with its own effects, coils, gaps and probes: ring8's truth
   // (harmonic, sector strength, coils on odd sectors, bowed and tilted gaps, a rotated probe),
-  // the nominal machine, and the nominal machine with a coil and a cavity voltage changed.
+  // the nominal machine, the nominal machine with a coil and a cavity voltage changed, and two
+  // variants of the truth below: lanes whose models differ in which effects they have
+  // (TrackModel::add_to_main_models) and in their harmonic's azimuth terms (caches shared only
+  // between models with the same terms).
   const Machine nominal = load_machine(ring8("machine.json")), truth = ring8_truth();
   const ModelFiles files = read_model_files(nominal);
   Machine changed = nominal;
   set_dvar(changed, "tc05mb", dvar_value(changed, "tc05mb") + 2e-4);
   set_dvar(changed, "vmaincav2", dvar_value(changed, "vmaincav2") * 1.01);
+  // Two more variants of the truth: the harmonic at another phase without the sector strength
+  // (other azimuth terms, no scaling), and the sector strength without the harmonic.
+  Machine turned = truth, scaled = truth;
+  turned.effect_set.field_harmonics[0].phase_deg += 30;
+  turned.effect_set.sector_strengths.clear();
+  scaled.effect_set.field_harmonics.clear();
   const TrackModel a = make_track_model(truth, {}, &files), b = make_track_model(nominal, {}, &files),
-                   c = make_track_model(changed, {}, &files);
+                   c = make_track_model(changed, {}, &files), d = make_track_model(turned, {}, &files),
+                   e = make_track_model(scaled, {}, &files);
   REQUIRE(&a.map.values() == &b.map.values());  // one map: the particles are grouped
   REQUIRE(&a.map.values() == &c.map.values());
-  const TrackModel* kinds[3] = {&a, &b, &c};
-  const Machine* machines[3] = {&truth, &nominal, &changed};
+  REQUIRE(&a.map.values() == &e.map.values());
+  const TrackModel* kinds[5] = {&a, &b, &c, &d, &e};
+  const Machine* machines[5] = {&truth, &nominal, &changed, &turned, &scaled};
   std::vector<const TrackModel*> models;
   std::vector<ParticleState> s0;
   const std::vector<BunchOffset> off = gaussian_bunch(*nominal.bunch, 20, 3);
   for (size_t i = 0; i < off.size(); ++i) {
-    const Machine& m = *machines[i % 3];
-    models.push_back(kinds[i % 3]);
+    const Machine& m = *machines[i % 5];
+    models.push_back(kinds[i % 5]);
     s0.push_back(offset_state(effective_injection(m), m.particle.mass_MeV, models.back()->rf_MHz, off[i]));
   }
   TrackSettings st = machine_track_settings(nominal);

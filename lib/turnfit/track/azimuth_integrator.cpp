@@ -345,6 +345,22 @@ StageCells stage_cells(int cells) {
   return s;
 }
 
+/// Whether two models' azimuth_terms are the same at every azimuth (the same n and phase of
+/// each harmonic that has terms; no harmonics, or effects off, in both).
+bool same_azimuth_terms(const TrackModel& a, const TrackModel& b) {
+  const bool ha = a.effects.active && !a.effects.harmonics.empty();
+  const bool hb = b.effects.active && !b.effects.harmonics.empty();
+  if (!ha || !hb) return ha == hb;
+  const size_t na = std::min(a.effects.harmonics.size(), TrackModel::kAzimuthHarmonics);
+  const size_t nb = std::min(b.effects.harmonics.size(), TrackModel::kAzimuthHarmonics);
+  if (na != nb) return false;
+  for (size_t k = 0; k < na; ++k)
+    if (a.effects.harmonics[k].n != b.effects.harmonics[k].n ||
+        a.effects.harmonics[k].phase_rad != b.effects.harmonics[k].phase_rad)
+      return false;
+  return true;
+}
+
 /// The azimuth's part of the field (TrackModel::azimuth_terms) at the stage azimuths of each
 /// grid step of a turn, computed on first use: every turn repeats them.
 struct TermCache {
@@ -492,21 +508,21 @@ void group_step(AzParticle* const* L, int n, double th, double h, int j0, const 
       br[l] = f.dbz_dr_T_m;
       bt[l] = f.dbz_dth_T;
     }
-    if (rest && one_model) {
+    if (rest) {
       // A lane off the map (its radius may not even be finite) is given the map's inner edge
       // instead: the effects get a radius they can take, and the lane drops what they give.
       double r[kMaxLanes];
       for (int l = 0; l < n; ++l) r[l] = good[l] ? t[0][l] : m.map.grid().r_min_m();
-      m.add_to_main_lanes(n, r, ths, bz, br, bt, terms, hints);
-    } else if (rest) {
-      for (int l = 0; l < n; ++l) {
-        const TrackModel& ml = L[l]->m;
-        if (!good[l] || ml.main_field_only()) continue;
-        FieldSample f{bz[l], br[l], bt[l]};
-        ml.add_to_main(t[0][l], ths, f, cache[l]->at(ml, node, st), hints[l]);
-        bz[l] = f.bz_T;
-        br[l] = f.dbz_dr_T_m;
-        bt[l] = f.dbz_dth_T;
+      if (one_model) {
+        m.add_to_main_lanes(n, r, ths, bz, br, bt, terms, hints);
+      } else {
+        const TrackModel* ms[kMaxLanes];
+        const TrackModel::AzimuthTerms* lane_terms[kMaxLanes];
+        for (int l = 0; l < n; ++l) {
+          ms[l] = &L[l]->m;
+          lane_terms[l] = ms[l]->main_field_only() ? nullptr : cache[l]->at(*ms[l], node, st);
+        }
+        TrackModel::add_to_main_models(n, ms, r, ths, bz, br, bt, lane_terms, hints);
       }
     }
     for (int l = 0; l < n; ++l) noaz[l] |= !(1 - t[1][l] * t[1][l] - t[3][l] * t[3][l] > 0);
@@ -563,10 +579,13 @@ struct GroupRun {
       tab = m.map.row_table(sc.v);
     }
     nt = g.ntheta;
-    // One cache of azimuth terms per model (the harmonics are the model's).
+    // One cache of azimuth terms per set of harmonic azimuths: the terms depend only on each
+    // harmonic's n and phase, so models that share them (an optimizer's designs that differ in
+    // anything else) share one cache, computed once and kept in cache once.
     std::vector<const TrackModel*> cached;
     for (size_t l = 0; l < n; ++l) {
-      const size_t c = static_cast<size_t>(std::find(cached.begin(), cached.end(), ms[l]) - cached.begin());
+      const auto same = [&](const TrackModel* c) { return same_azimuth_terms(*c, *ms[l]); };
+      const size_t c = static_cast<size_t>(std::find_if(cached.begin(), cached.end(), same) - cached.begin());
       if (c == cached.size()) {
         cached.push_back(ms[l]);
         caches.push_back(std::make_unique<TermCache>(*ms[l], node0, dnode));

@@ -271,6 +271,98 @@ void TrackModel::add_to_main_lanes(int n, const double* r, double th, double* bz
   }
 }
 
+void TrackModel::add_to_main_models(int n, const TrackModel* const* models, const double* r, double th, double* bz,
+                                    double* br, double* bt, const AzimuthTerms* const* terms,
+                                    CoilHints* const* hints) {
+  // add_to_main_lanes' stages with each lane's own model (its own numbers, the same
+  // expressions as field_with_effects and add_coils in the same order). (add_to_main_lanes
+  // keeps its own loops: with one model its tests and tables are hoisted out of the lanes,
+  // which a bunch's speed needs; here every lane looks its own up.)
+  double centre[kMaxLanes] = {}, dc[kMaxLanes] = {};
+  for (int l = 0; l < n; ++l)
+    if (models[l]->sector_windows) centre[l] = models[l]->sector_centre(r[l], dc[l]);
+  for (int l = 0; l < n; ++l) {
+    const FieldEffects& e = models[l]->effects;
+    if (!e.active || e.sector_relative.empty()) continue;
+    double df;
+    const double f = e.sector_factor(th - centre[l], df);
+    br[l] = br[l] * f - bz[l] * df * dc[l];
+    bt[l] = bt[l] * f + bz[l] * df;
+    bz[l] *= f;
+  }
+  // The coils on the main field as it is now (their threshold is on it), table by table.
+  double mb[kMaxLanes], mbr[kMaxLanes], mbt[kMaxLanes];
+  const TrackModel* summed[kMaxLanes];  // the lane's model if its coils are summed, else nullptr
+  size_t windows = 0, singles = 0;
+  for (int l = 0; l < n; ++l) {
+    const TrackModel& m = *models[l];
+    mb[l] = bz[l];
+    mbr[l] = br[l];
+    mbt[l] = bt[l];
+    summed[l] = nullptr;
+    if (m.coils.empty() || m.no_coil_field()) continue;
+    if (m.summed_for_ != m.coils.size()) {  // add_coils' own fallback
+      const FieldSample main{mb[l], mbr[l], mbt[l]};
+      FieldSample out = main;
+      m.add_coils(r[l], th, main, centre[l], out, hints[l]);
+      bz[l] = out.bz_T;
+      br[l] = out.dbz_dr_T_m;
+      bt[l] = out.dbz_dth_T;
+      continue;
+    }
+    summed[l] = &m;
+    windows = std::max(windows, m.window_sums.size());
+    singles = std::max(singles, m.single_coils.size());
+  }
+  for (int l = 0; l < n; ++l)
+    if (summed[l] && !summed[l]->coil_sum.empty())
+      summed[l]->coil_sum.add_near(r[l], hints[l]->all, mb[l], mbr[l], mbt[l], summed[l]->threshold_T, bz[l], br[l],
+                                   bt[l]);
+  for (size_t k = 0; k < windows; ++k)
+    for (int l = 0; l < n; ++l) {
+      const TrackModel* m = summed[l];
+      if (!m || k >= m->window_sums.size()) continue;
+      const WindowSum& w = m->window_sums[k];
+      if (!m->coils[w.window_of].in_azimuth(th, centre[l])) continue;
+      TrimCoilSum::Hint unkept;
+      w.sum.add_near(r[l], k < kHintedWindows ? hints[l]->window[k] : unkept, mb[l], mbr[l], mbt[l], m->threshold_T,
+                     bz[l], br[l], bt[l]);
+    }
+  for (size_t s = 0; s < singles; ++s)
+    for (int l = 0; l < n; ++l) {
+      const TrackModel* m = summed[l];
+      if (!m || s >= m->single_coils.size()) continue;
+      m->coils[m->single_coils[s]].add(r[l], th, mb[l], mbr[l], mbt[l], m->threshold_T, bz[l], br[l], bt[l],
+                                       centre[l]);
+    }
+  // The harmonics on top of both.
+  size_t harmonics = 0;
+  for (int l = 0; l < n; ++l)
+    if (models[l]->effects.active) harmonics = std::max(harmonics, models[l]->effects.harmonics.size());
+  for (size_t k = 0; k < harmonics; ++k) {
+    double g[kMaxLanes], c[kMaxLanes], sn[kMaxLanes];
+    bool on[kMaxLanes];
+    for (int l = 0; l < n; ++l) {
+      const FieldEffects& e = models[l]->effects;
+      on[l] = e.active && k < e.harmonics.size();
+      if (!on[l]) continue;
+      const auto& h = e.harmonics[k];
+      const double dr = r[l] - h.r0_m;
+      g[l] = h.inv_width2 == 0 ? 1.0 : std::exp(-0.5 * dr * dr * h.inv_width2);
+      models[l]->harmonic_terms(k, th, terms[l], c[l], sn[l]);
+    }
+    for (int l = 0; l < n; ++l) {
+      if (!on[l]) continue;
+      const auto& h = models[l]->effects.harmonics[k];
+      const double dr = r[l] - h.r0_m;
+      const double b = h.amplitude_T * g[l] * c[l];
+      bz[l] += b;
+      br[l] -= b * dr * h.inv_width2;
+      bt[l] -= h.amplitude_T * g[l] * h.n * sn[l];
+    }
+  }
+}
+
 namespace {
 std::string effect_path(size_t index, const std::string& key) {
   return "/effects/" + std::to_string(index) + (key.empty() ? "" : "/" + key);

@@ -193,6 +193,12 @@ struct TrackModel {
   static constexpr int kMaxLanes = 16;
   void add_to_main_lanes(int n, const double* r_m, double theta_rad, double* bz, double* br, double* bt,
                          const AzimuthTerms* terms, CoilHints* const* hints) const;
+  /// add_to_main_lanes with a model per lane (an optimizer's designs on one map): lane l gets
+  /// models[l]->add_to_main's numbers with terms[l] (its model's azimuth terms, or nullptr),
+  /// and a lane whose model adds nothing (main_field_only) is left as it came.
+  static void add_to_main_models(int n, const TrackModel* const* models, const double* r_m, double theta_rad,
+                                 double* bz, double* br, double* bt, const AzimuthTerms* const* terms,
+                                 CoilHints* const* hints);
   /// Whether field() is the main field alone (no effects, no coils).
   bool main_field_only() const { return !effects.active && (coils.empty() || no_coil_field()); }
   /// Whether the coils add nothing (every one at bmax 0, as sum_coils() found them).
