@@ -1064,9 +1064,16 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
         for (double t : {1.0, 0.5, 0.25}) {
           std::vector<double> xt = x;
           for (size_t q = 0; q < n0; ++q) xt[q] = clamp(x_fit[q] + t * (x[q] - x_fit[q]), nv[q].lower, nv[q].upper);
+          // The effect's part of the step is its clamped start's, as the variables' moves are:
+          // a screen's estimate beyond the range gave half and quarter steps that were not
+          // halves and quarters of the start (both clamped to the bound, or the estimate's
+          // half inside it while the variables moved for the clamped size).
           if (!c.discrete)
-            for (size_t q = 0; q < c.params.size(); ++q)
-              xt[n0 + q] = clamp(c.params[q].absent + t * row->sc.c[static_cast<Index>(q)], c.params[q].lower, c.params[q].upper);
+            for (size_t q = 0; q < c.params.size(); ++q) {
+              const double est = row->sc.c[static_cast<Index>(q)];
+              const double step = start_vals[q] == c.params[q].absent + est ? est : start_vals[q] - c.params[q].absent;
+              xt[n0 + q] = clamp(c.params[q].absent + t * step, c.params[q].lower, c.params[q].upper);
+            }
           rf.state.x = xt;
           const double c2 = chi2_of(rf.state, nullptr, nullptr);
           if (c2 < best_c2) {
