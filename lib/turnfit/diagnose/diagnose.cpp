@@ -110,6 +110,39 @@ Screen screen_columns(const Base& b, const MatrixXd& C) {
   return s;
 }
 
+/// A curved candidate's screen along its path (columns C at sizes b); c is its one parameter.
+Screen screen_path(const Base& base, const MatrixXd& C, const std::vector<double>& b, double step) {
+  Screen s;
+  const MatrixXd PC = C - base.Q * (base.Q.transpose() * C);
+  const PathMin m = path_min(base.Pz, PC, b);
+  s.c = VectorXd::Constant(1, m.x);
+  s.dchi2 = base.Pz.squaredNorm() - m.g;
+  s.M = MatrixXd::Constant(1, 1, m.info);
+  s.cov = MatrixXd::Constant(1, 1, m.info > 0 ? 1 / m.info : std::numeric_limits<double>::infinity());
+  const double total = path_at(C, b, step).squaredNorm();
+  s.visible = total > 0 ? path_at(PC, b, step).squaredNorm() / total : 0;
+  return s;
+}
+
+/// The sizes a curved candidate's path is sampled at: its curve step times +-1/8 to +-2 (dense
+/// near absent, where the detection limits lie), within its range.
+std::vector<double> path_sizes(const Candidate& c) {
+  std::vector<double> out;
+  const EffectParam& p = c.params[0];
+  for (double f : {0.125, 0.25, 0.5, 0.75, 1.0, 1.5, 2.0})
+    for (double sign : {1.0, -1.0}) {
+      const double b = sign * f * c.curve_step;
+      if (p.absent + b >= p.lower && p.absent + b <= p.upper) out.push_back(b);
+    }
+  return out;
+}
+
+/// A candidate's signature for coefficients coef: C coef, or a curved one's along its path.
+VectorXd signature(const MatrixXd& C, const std::vector<double>& path, const VectorXd& coef) {
+  if (!path.empty()) return path_at(C, path, coef[0]);
+  return C * coef;
+}
+
 json jnum(double v) { return std::isfinite(v) ? json(v) : json(nullptr); }
 
 double norm_angle(double deg, double period) {
@@ -118,6 +151,57 @@ double norm_angle(double deg, double period) {
 }
 
 }  // namespace
+
+VectorXd path_at(const MatrixXd& S, const std::vector<double>& b, double x) {
+  if (x <= b.front()) return S.col(0);
+  for (size_t i = 0; i + 1 < b.size(); ++i)
+    if (x <= b[i + 1]) {
+      const double t = (x - b[i]) / (b[i + 1] - b[i]);
+      return (1 - t) * S.col(static_cast<Index>(i)) + t * S.col(static_cast<Index>(i + 1));
+    }
+  return S.col(static_cast<Index>(b.size() - 1));
+}
+
+PathMin path_min(const VectorXd& u, const MatrixXd& PS, const std::vector<double>& b) {
+  PathMin best;
+  best.g = std::numeric_limits<double>::infinity();
+  for (size_t i = 0; i + 1 < b.size(); ++i) {
+    const VectorXd w = u + PS.col(static_cast<Index>(i));
+    const VectorXd D = PS.col(static_cast<Index>(i + 1)) - PS.col(static_cast<Index>(i));
+    const double dd = D.squaredNorm();
+    const double t = dd > 0 ? std::max(0.0, std::min(1.0, -D.dot(w) / dd)) : 0.0;
+    const double g = (w + t * D).squaredNorm();
+    if (g < best.g) {
+      const double db = b[i + 1] - b[i];
+      best = {b[i] + t * db, g, dd / (db * db)};
+    }
+  }
+  return best;
+}
+
+// On a segment ||s||^2 is convex in x: a crossing is on the first segment whose end is over T.
+double path_limit(const MatrixXd& PS, const std::vector<double>& b, double T) {
+  const size_t zero = static_cast<size_t>(std::find(b.begin(), b.end(), 0.0) - b.begin());
+  double worst = 0;
+  for (int dir : {1, -1}) {
+    double found = std::numeric_limits<double>::quiet_NaN();
+    for (size_t i = zero; dir > 0 ? i + 1 < b.size() : i > 0; i = dir > 0 ? i + 1 : i - 1) {
+      const size_t j = dir > 0 ? i + 1 : i - 1;
+      const VectorXd a = PS.col(static_cast<Index>(i)), D = PS.col(static_cast<Index>(j)) - a;
+      if ((a + D).squaredNorm() < T) continue;
+      double lo = 0, hi = 1;
+      for (int k = 0; k < 60; ++k) {
+        const double mid = 0.5 * (lo + hi);
+        ((a + mid * D).squaredNorm() >= T ? hi : lo) = mid;
+      }
+      found = std::fabs(b[i] + hi * (b[j] - b[i]));
+      break;
+    }
+    if (std::isnan(found)) return found;
+    worst = std::max(worst, found);
+  }
+  return worst;
+}
 
 json ambiguous_rivals(const std::vector<Rival>& rivals, int k_selected, double overdispersion, double log_n,
                       double margin, double window) {
@@ -373,6 +457,8 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
     return r;
   };
 
+  // A variable's prior row's sigma: the problem's prior, else the weak prior toward the machine's value.
+  auto prior_sigma = [&](const TurnVariable& v) { return v.sigma > 0 ? v.sigma : s.fit.weak_prior_range * (v.upper - v.lower); };
   // The linear model at the state: residual and the variables' Jacobian (forward differences,
   // localsearch's step), with one prior row per variable (the problem's prior, else the weak
   // prior toward the machine's value; an effect's parameter has a wide prior toward absent).
@@ -420,7 +506,7 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
     rows.white.whiten_columns(L.J.topRows(static_cast<Index>(nd)));
     for (size_t j = 0; j < n; ++j) {
       const auto& v = vars[j];
-      const double sig = v.sigma > 0 ? v.sigma : s.fit.weak_prior_range * (v.upper - v.lower);
+      const double sig = prior_sigma(v);
       L.J(static_cast<Index>(nd + j), static_cast<Index>(j)) = 1 / sig;
       L.z[static_cast<Index>(nd + j)] = (S.x[j] - v.start) / sig;
     }
@@ -447,25 +533,29 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
     return c;
   };
 
+  // One signature column: the state's machine with `entries` appended, (e - e0) / h.
+  // With `x` (not empty): at that design instead of the state's (a curved candidate's path).
+  auto signature_column = [&](const State& S, const std::vector<double>& e0, const std::vector<json>& entries, double h,
+                              const std::vector<double>& x = {}) {
+    const size_t nd = rows.point.size();
+    Machine v = S.prob->machine();
+    append_entries(v, entries);
+    const auto q = S.prob->with_machine(std::move(v), S.prob->variables(), S.x, true);
+    std::vector<unsigned char> m;
+    const std::vector<double> ev = residual(*q, x.empty() ? S.x : x, m);
+    std::vector<double> col(nd);
+    for (size_t r = 0; r < nd; ++r) {
+      const size_t i = rows.point[r];
+      col[r] = m[i] ? (ev[i] - e0[i]) / h : 0;
+    }
+    rows.white.whiten(Eigen::Map<VectorXd>(col.data(), static_cast<Index>(nd)));
+    return col;
+  };
   // A candidate's signature columns at a state (data rows, in sigma per unit parameter), one
   // evaluation per parameter; discrete candidates: the sum of their atoms' columns.
   auto columns = [&](const State& S, const std::vector<double>& e0, const Candidate& c) -> std::vector<std::vector<double>> {
-    const size_t nd = rows.point.size();
     std::vector<std::vector<double>> out_cols;
-    auto column_of = [&](std::vector<json> entries, double h) {
-      Machine v = S.prob->machine();
-      append_entries(v, entries);
-      const auto q = S.prob->with_machine(std::move(v), S.prob->variables(), S.x, true);
-      std::vector<unsigned char> m;
-      const std::vector<double> ev = residual(*q, S.x, m);
-      std::vector<double> col(nd);
-      for (size_t r = 0; r < nd; ++r) {
-        const size_t i = rows.point[r];
-        col[r] = m[i] ? (ev[i] - e0[i]) / h : 0;
-      }
-      rows.white.whiten(Eigen::Map<VectorXd>(col.data(), static_cast<Index>(nd)));
-      return col;
-    };
+    auto column_of = [&](const std::vector<json>& entries, double h) { return signature_column(S, e0, entries, h); };
     if (c.discrete) {
       out_cols.push_back(column_of(c.entries, 1));
       return out_cols;
@@ -683,7 +773,7 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
       if (!clashes(c, selected)) live.push_back(&c);
     std::vector<std::vector<std::vector<double>>> cand_cols(live.size());
     // One list of evaluations: atoms, then the continuous candidates' parameters.
-    std::vector<std::pair<int, size_t>> jobs;  // (-1, atom) or (candidate, 0)
+    std::vector<std::pair<int, size_t>> jobs;  // (-1, atom), (candidate, 0) or (curved candidate, 1 + sample)
     std::set<size_t> atoms_needed;
     for (size_t k = 0; k < live.size(); ++k) {
       if (live[k]->discrete)
@@ -699,7 +789,51 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
       else
         cand_cols[static_cast<size_t>(k)] = columns(st, e_state, *live[static_cast<size_t>(k)]);
     });
-    for (size_t k = 0; k < live.size(); ++k) evaluations += live[k]->discrete ? 0 : live[k]->params.size();
+    // A curved candidate's path, sampled along the valley its tangent opens: at size b the
+    // variables move by b v, v the linear move that takes up the tangent (what the base fit
+    // did to absorb the effect, undone as it comes in). Along the effect alone the variables'
+    // linear moves could not follow: on a blind case (a gap bow of main1, -99 mm, 48 free
+    // variables) the base fit had taken up 98 % of its 7.8 mm, and the path's best was -9 mm.
+    // One evaluation per size; a size that cannot be tracked ends the path on its side.
+    const size_t nvars = st.x.size();
+    std::vector<std::vector<double>> sizes(live.size());
+    std::vector<VectorXd> valley(live.size());
+    std::vector<std::vector<VectorXd>> path_cols(live.size());
+    std::vector<std::vector<unsigned char>> sample_ok(live.size());
+    std::vector<std::pair<size_t, size_t>> path_jobs;
+    for (size_t k = 0; k < live.size(); ++k)
+      if (live[k]->curve_step > 0) {
+        VectorXd tan = VectorXd::Zero(L.z.size());
+        for (size_t r = 0; r < nd; ++r) tan[static_cast<Index>(r)] = cand_cols[k][0][r];
+        valley[k] = -base.R.triangularView<Eigen::Upper>().solve(base.Q.transpose() * tan);
+        sizes[k] = path_sizes(*live[k]);
+        path_cols[k].resize(sizes[k].size());
+        sample_ok[k].assign(sizes[k].size(), 0);
+        for (size_t i = 0; i < sizes[k].size(); ++i) path_jobs.push_back({k, i});
+      }
+    const auto& vars_now = st.prob->variables();
+    parallel_for(path_jobs.size(), threads, [&](size_t j, unsigned) {
+      const auto [k, i] = path_jobs[j];
+      const Candidate& c = *live[k];
+      const double b = sizes[k][i];
+      std::vector<json> entries = c.entries;
+      const EffectParam& prm = c.params[0];
+      for (size_t e : prm.entries) entries[e][prm.key] = prm.absent + b;
+      std::vector<double> x = st.x;
+      for (size_t q = 0; q < nvars; ++q)
+        x[q] = clamp(x[q] + b * valley[k][static_cast<Index>(q)], vars_now[q].lower, vars_now[q].upper);
+      try {
+        const std::vector<double> col = signature_column(st, e_state, entries, 1, x);
+        VectorXd full = VectorXd::Zero(L.z.size());
+        for (size_t r = 0; r < nd; ++r) full[static_cast<Index>(r)] = col[r];
+        for (size_t q = 0; q < nvars; ++q) full[static_cast<Index>(nd + q)] = (x[q] - st.x[q]) / prior_sigma(vars_now[q]);
+        path_cols[k][i] = std::move(full);
+        sample_ok[k][i] = 1;
+      } catch (const Error&) {
+      }
+    });
+    for (size_t k = 0; k < live.size(); ++k)
+      evaluations += live[k]->discrete ? 0 : live[k]->params.size() + sizes[k].size();
     evaluations += atoms_needed.size();
 
     struct Row {
@@ -707,12 +841,38 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
       Screen sc;
       double held = 0;
       MatrixXd C;
+      std::vector<double> path;  ///< a curved candidate's sizes, the columns of C (empty: linear)
+      VectorXd valley;           ///< and the variables' move per unit size along it
     };
     std::vector<Row> screened;
     for (size_t k = 0; k < live.size(); ++k) {
       const Candidate& c = *live[k];
-      Row row{&c, {}, 0, MatrixXd::Zero(L.z.size(), c.discrete ? 1 : static_cast<Index>(c.params.size()))};
-      if (c.discrete) {
+      const bool curved = c.curve_step > 0;
+      Row row{&c, {}, 0, MatrixXd::Zero(L.z.size(), c.discrete ? 1 : static_cast<Index>(c.params.size())), {}, {}};
+      if (curved) {
+        // The path: 0 and the sizes evaluated, outward from 0 on each side up to a failure.
+        std::vector<std::pair<double, const VectorXd*>> on;
+        const VectorXd none = VectorXd::Zero(L.z.size());
+        on.push_back({0.0, &none});
+        for (int dir : {1, -1}) {
+          std::vector<size_t> side;
+          for (size_t i = 0; i < sizes[k].size(); ++i)
+            if (dir * sizes[k][i] > 0) side.push_back(i);
+          std::sort(side.begin(), side.end(), [&](size_t x, size_t y) { return std::fabs(sizes[k][x]) < std::fabs(sizes[k][y]); });
+          for (size_t i : side) {
+            if (!sample_ok[k][i]) break;
+            on.push_back({sizes[k][i], &path_cols[k][i]});
+          }
+        }
+        std::sort(on.begin(), on.end(), [](const auto& x, const auto& y) { return x.first < y.first; });
+        if (on.size() < 2) continue;  // no size of it can be tracked
+        row.C.resize(L.z.size(), static_cast<Index>(on.size()));
+        for (size_t q = 0; q < on.size(); ++q) {
+          row.path.push_back(on[q].first);
+          row.C.col(static_cast<Index>(q)) = *on[q].second;
+        }
+        row.valley = valley[k];
+      } else if (c.discrete) {
         bool ends_zero = false;
         for (size_t q = 0; q < c.atoms.size(); ++q) {
           double nrm = 0;
@@ -725,10 +885,10 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
         }
         if (ends_zero) continue;
       } else {
-        for (size_t q = 0; q < c.params.size(); ++q)
+        for (size_t q = 0; q < cand_cols[k].size(); ++q)
           for (size_t r = 0; r < nd; ++r) row.C(static_cast<Index>(r), static_cast<Index>(q)) = cand_cols[k][q][r];
       }
-      row.sc = screen_columns(base, row.C);
+      row.sc = curved ? screen_path(base, row.C, row.path, c.curve_step) : screen_columns(base, row.C);
       // Held-out gain: each fold predicted by base and candidate fitted without it.
       for (int f = 0; f < K; ++f) {
         const auto& tr = train[static_cast<size_t>(f)];
@@ -736,12 +896,14 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
         const Base& fb = fold_base[static_cast<size_t>(f)];
         const MatrixXd Ct = row.C(tr, Eigen::all);
         const MatrixXd PC = Ct - fb.Q * (fb.Q.transpose() * Ct);
-        const VectorXd cc = -PC.completeOrthogonalDecomposition().solve(fb.Pz);
+        const VectorXd cc = curved ? VectorXd::Constant(1, path_min(fb.Pz, PC, row.path).x)
+                                   : VectorXd(-PC.completeOrthogonalDecomposition().solve(fb.Pz));
         const VectorXd d_base = -fb.R.triangularView<Eigen::Upper>().solve(fb.Qtz);
-        const VectorXd d_cand = -fb.R.triangularView<Eigen::Upper>().solve(fb.Qtz + fb.Q.transpose() * (Ct * cc));
+        const VectorXd d_cand =
+            -fb.R.triangularView<Eigen::Upper>().solve(fb.Qtz + fb.Q.transpose() * signature(Ct, row.path, cc));
         const VectorXd zt = L.z(te);
         row.held += (zt + L.J(te, Eigen::all) * d_base).squaredNorm() -
-                    (zt + L.J(te, Eigen::all) * d_cand + row.C(te, Eigen::all) * cc).squaredNorm();
+                    (zt + L.J(te, Eigen::all) * d_cand + signature(row.C(te, Eigen::all), row.path, cc)).squaredNorm();
       }
       screened.push_back(std::move(row));
     }
@@ -777,6 +939,10 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
         const double lmin = es.eigenvalues()[0];
         lim["amplitude_T"] = lmin > 0 ? jnum(std::sqrt(T / lmin)) : json(nullptr);
         j["amplitude_T"] = std::hypot(row.sc.c[0], row.sc.c[1]);
+      } else if (!row.path.empty()) {
+        const MatrixXd PC = row.C - base.Q * (base.Q.transpose() * row.C);
+        lim[c.params[0].key] = jnum(path_limit(PC, row.path, T));
+        j[c.params[0].key] = row.sc.c[0];
       } else {
         for (size_t q = 0; q < c.params.size(); ++q) {
           const double marg = row.sc.cov(static_cast<Index>(q), static_cast<Index>(q));
@@ -788,7 +954,7 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
       // What would absorb it: the variables' moves that take up the signature of the effect at
       // its detection limit, in units of their uncertainty, largest first.
       {
-        VectorXd a(row.C.cols());
+        VectorXd a(c.discrete ? 1 : static_cast<Index>(c.params.size()));
         if (c.discrete)
           a[0] = 1;
         else if (c.type == "field-harmonic" && c.params.size() == 2) {
@@ -798,7 +964,8 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
           for (size_t q = 0; q < c.params.size(); ++q)
             a[static_cast<Index>(q)] = lim[c.params[q].key].is_number() ? lim[c.params[q].key].get<double>() : 0;
         }
-        const VectorXd move = -base.R.triangularView<Eigen::Upper>().solve(base.Q.transpose() * (row.C * a));
+        VectorXd move = -base.R.triangularView<Eigen::Upper>().solve(base.Q.transpose() * signature(row.C, row.path, a));
+        if (!row.path.empty()) move += a[0] * row.valley;  // a path's sizes move the variables along its valley
         std::vector<std::pair<double, size_t>> order;
         for (Index q = 0; q < move.size(); ++q) order.push_back({std::fabs(move[q]) / post_sigma[q], static_cast<size_t>(q)});
         std::sort(order.rbegin(), order.rend());
@@ -816,7 +983,10 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
       // times or more what it would be without them).
       {
         const double alone = row.C.squaredNorm();
-        j["limit_without_variables"] = alone > 0 ? jnum(std::sqrt(T / alone)) : json(nullptr);
+        if (!row.path.empty())
+          j["limit_without_variables"] = jnum(path_limit(row.C, row.path, T));
+        else
+          j["limit_without_variables"] = alone > 0 ? jnum(std::sqrt(T / alone)) : json(nullptr);
       }
       j["status"] = passes ? "candidate" : (row.sc.visible < 0.05 ? "absorbed" : "not-seen");
       // The row of the first screen (at the base fit) stays: its scores and detection limit are
@@ -1013,7 +1183,8 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
         coef.resize(static_cast<Index>(c.params.size()));
         for (size_t q = 0; q < c.params.size(); ++q) coef[static_cast<Index>(q)] = start_vals[q] - c.params[q].absent;
       }
-      const VectorXd dx = -base.R.triangularView<Eigen::Upper>().solve(base.Qtz + base.Q.transpose() * (row->C * coef));
+      VectorXd dx = -base.R.triangularView<Eigen::Upper>().solve(base.Qtz + base.Q.transpose() * signature(row->C, row->path, coef));
+      if (!row->path.empty()) dx += coef[0] * row->valley;  // a path's sizes move the variables along its valley
       const std::vector<double> x_fit = x;
       for (size_t q = 0; q < x.size(); ++q) x[q] = clamp(x[q] + dx[static_cast<Index>(q)], nv[q].lower, nv[q].upper);
       const std::string tag = "fx" + std::to_string(selected.size() + 1) + ".";
@@ -1293,8 +1464,8 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
     // Its signature at the fitted size, with the variables' share taken off (linear).
     sel.signature_mm.assign(N, std::nan(""));
     {
-      const MatrixXd PC = best->row->C - base.Q * (base.Q.transpose() * best->row->C);
-      const VectorXd full = -(PC * best->row->sc.c);
+      const VectorXd sg = signature(best->row->C, best->row->path, best->row->sc.c);
+      const VectorXd full = -(sg - base.Q * (base.Q.transpose() * sg));
       VectorXd sgn = full.head(static_cast<Index>(nd));
       rows.white.color(sgn);  // back to mm
       for (size_t rr = 0; rr < nd; ++rr) sel.signature_mm[rows.point[rr]] = sgn[static_cast<Index>(rr)];

@@ -36,6 +36,11 @@ struct Candidate {
   /// the sum of its coils' single-coil signatures (`atoms`, indices into the atom list).
   bool discrete = false;
   std::vector<size_t> atoms;
+  /// A curved signature (one parameter): screened on a quadratic through the signatures at
+  /// +-curve_step instead of the tangent at absent (0: linear, the tangent). A gap bow's is: at
+  /// the crest its energy gain changes with the square of the bow, and the variables take up
+  /// nearly all of the tangent.
+  double curve_step = 0;
 };
 
 /// The catalogue of effects (turnfit-machine(5) EFFECTS) as candidates for this problem:
@@ -175,6 +180,23 @@ struct Rival {
   int k = 0;            ///< its parameters
   int group = 0;        ///< rivals of one distinct effect share it (a refit and its screen, bumps within a width)
 };
+
+/// A curved candidate's path (one parameter whose signature is not linear in it, a gap bow's):
+/// its signature sampled at sizes b (ascending, one of them 0 with a zero column), the columns
+/// of S in that order, linear between samples; the signature at size x (clamped to the ends).
+Eigen::VectorXd path_at(const Eigen::MatrixXd& S, const std::vector<double>& b, double x);
+
+/// The minimum of ||u + s(x)||^2 along a path (PS: its columns projected off the variables'
+/// span, as u is), exact on each segment, where it is a quadratic in x; `info` is that
+/// segment's curvature (the information on x at unit noise). Never above ||u||^2 (x = 0).
+struct PathMin {
+  double x = 0, g = 0, info = 0;
+};
+PathMin path_min(const Eigen::VectorXd& u, const Eigen::MatrixXd& PS, const std::vector<double>& b);
+
+/// The size, whatever its sign, from which a path's signature gains T in chi2: the larger of
+/// the first crossings on each side of 0. NaN when one side stays below T over the sizes sampled.
+double path_limit(const Eigen::MatrixXd& PS, const std::vector<double>& b, double T);
 
 /// The rivals ambiguous with a selected effect of k_selected parameters when every chi2 is divided
 /// by the overdispersion c (at least 1; quasi-likelihood, QBIC = chi2 / c + k ln N): those that
