@@ -843,12 +843,13 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
       MatrixXd C;
       std::vector<double> path;  ///< a curved candidate's sizes, the columns of C (empty: linear)
       VectorXd valley;           ///< and the variables' move per unit size along it
+      double tangent2 = 0;       ///< and its tangent's squared norm (the effect alone, per unit squared)
     };
     std::vector<Row> screened;
     for (size_t k = 0; k < live.size(); ++k) {
       const Candidate& c = *live[k];
       const bool curved = c.curve_step > 0;
-      Row row{&c, {}, 0, MatrixXd::Zero(L.z.size(), c.discrete ? 1 : static_cast<Index>(c.params.size())), {}, {}};
+      Row row{&c, {}, 0, MatrixXd::Zero(L.z.size(), c.discrete ? 1 : static_cast<Index>(c.params.size())), {}, {}, 0};
       if (curved) {
         // The path: 0 and the sizes evaluated, outward from 0 on each side up to a failure.
         std::vector<std::pair<double, const VectorXd*>> on;
@@ -872,6 +873,7 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
           row.C.col(static_cast<Index>(q)) = *on[q].second;
         }
         row.valley = valley[k];
+        for (size_t r = 0; r < nd; ++r) row.tangent2 += cand_cols[k][0][r] * cand_cols[k][0][r];
       } else if (c.discrete) {
         bool ends_zero = false;
         for (size_t q = 0; q < c.atoms.size(); ++q) {
@@ -983,10 +985,10 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
       // times or more what it would be without them).
       {
         const double alone = row.C.squaredNorm();
-        if (!row.path.empty())
-          j["limit_without_variables"] = jnum(path_limit(row.C, row.path, T));
-        else
-          j["limit_without_variables"] = alone > 0 ? jnum(std::sqrt(T / alone)) : json(nullptr);
+        // A path's columns hold the variables' moves along its valley: without the variables,
+        // the effect alone is its tangent.
+        const double own = row.path.empty() ? alone : row.tangent2;
+        j["limit_without_variables"] = own > 0 ? jnum(std::sqrt(T / own)) : json(nullptr);
       }
       j["status"] = passes ? "candidate" : (row.sc.visible < 0.05 ? "absorbed" : "not-seen");
       // The row of the first screen (at the base fit) stays: its scores and detection limit are
