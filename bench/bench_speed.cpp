@@ -82,8 +82,6 @@ int main(int argc, char** argv) {
   else
     std::printf("(PSI Ring example skipped: shared data not found at %s)\n", TURNFIT_SHARED_DIR);
 
-  if (!only_designs) std::printf("== Single-particle tracks, 182 turns, one thread, median of %d\n", repeat);
-  if (!only_designs) std::printf("%-14s %14s %12s %8s %16s\n", "machine", "reference [ms]", "default [ms]", "ratio", "max |dr| [mm]");
   struct Loaded {
     Machine m;
     TrackModel model;
@@ -100,104 +98,110 @@ int main(int argc, char** argv) {
     L.s0 = injection_state(effective_injection(L.m), L.m.particle.mass_MeV);
     L.ts = machine_track_settings(L.m);
     L.ts.turns = 182;
-    TrackSettings ref = L.ts;
-    ref.reference_stepper = true;
-    std::vector<double> t_ref, t_fast;
-    std::vector<TurnRecord> a, b;
-    for (int k = 0; k < (only_designs ? 0 : repeat); ++k) {
-      a.clear();
-      auto t0 = Clock::now();
-      track_particle(L.model, L.s0, ref, a);
-      t_ref.push_back(seconds_since(t0) * 1e3);
-      b.clear();
-      t0 = Clock::now();
-      track_particle(L.model, L.s0, L.ts, b);
-      t_fast.push_back(seconds_since(t0) * 1e3);
-    }
-    if (!only_designs)
-      std::printf("%-14s %14.2f %12.2f %7.2fx %16.2e\n", c.name.c_str(), median(t_ref), median(t_fast),
-                  median(t_ref) / median(t_fast), worst_dr(a, b));
     loaded.push_back(std::move(L));
   }
 
-  if (breakdown && !only_designs) {
-    // What each field effect of the truth costs a single track: the truth without it, and the
-    // nominal machine with it alone (the same coils as the truth), interleaved run by run.
-    std::printf("\n== The truth's field effects, one at a time (single track, default stepper, median of %d)\n", repeat);
-    const Loaded& T = loaded[1];
-    struct Variant {
-      std::string name;
-      Machine m;
-    };
-    std::vector<Variant> vs;
-    const auto without = [&](const std::string& name, auto clear) {
-      Machine m = T.m;
-      clear(m.effect_set);
-      vs.push_back({name, m});
-    };
-    using Fx = Effects;
-    without("truth", [](Fx&) {});
-    without("- field-harmonic", [](Fx& e) { e.field_harmonics.clear(); });
-    without("- sector-strength", [](Fx& e) { e.sector_strengths.clear(); });
-    without("- trimcoil-sectors", [](Fx& e) { e.trimcoil_sectors.clear(); });
-    without("no field effect", [](Fx& e) {
-      e.field_harmonics.clear();
-      e.sector_strengths.clear();
-      e.trimcoil_sectors.clear();
-    });
-    without("nothing (coils 0)", [](Fx& e) { e = Fx{}; });
-    for (auto& t : vs.back().m.trimcoils) t.bmax_T = 0;
-    std::vector<TrackModel> models;
-    for (const auto& v : vs) models.push_back(make_track_model(v.m));
-    std::vector<std::vector<double>> times(vs.size());
-    for (int k = 0; k < repeat; ++k)
-      for (size_t v = 0; v < vs.size(); ++v) {
-        std::vector<TurnRecord> a;
-        const auto t0 = Clock::now();
-        track_particle(models[v], T.s0, T.ts, a);
-        times[v].push_back(seconds_since(t0) * 1e3);
+  if (!only_designs) {  // sections 1 and 2 (and the breakdown)
+    std::printf("== Single-particle tracks, 182 turns, one thread, median of %d\n", repeat);
+    std::printf("%-14s %14s %12s %8s %16s\n", "machine", "reference [ms]", "default [ms]", "ratio", "max |dr| [mm]");
+    for (size_t c = 0; c < loaded.size(); ++c) {
+      const Loaded& L = loaded[c];
+      TrackSettings ref = L.ts;
+      ref.reference_stepper = true;
+      std::vector<double> t_ref, t_fast;
+      std::vector<TurnRecord> a, b;
+      for (int k = 0; k < repeat; ++k) {
+        a.clear();
+        auto t0 = Clock::now();
+        track_particle(L.model, L.s0, ref, a);
+        t_ref.push_back(seconds_since(t0) * 1e3);
+        b.clear();
+        t0 = Clock::now();
+        track_particle(L.model, L.s0, L.ts, b);
+        t_fast.push_back(seconds_since(t0) * 1e3);
       }
-    for (size_t v = 0; v < vs.size(); ++v)
-      std::printf("%-22s %8.2f ms  %5.2fx of nothing\n", vs[v].name.c_str(), median(times[v]),
-                  median(times[v]) / median(times.back()));
-  }
+      std::printf("%-14s %14.2f %12.2f %7.2fx %16.2e\n", cases[c].name.c_str(), median(t_ref), median(t_fast),
+                  median(t_ref) / median(t_fast), worst_dr(a, b));
+    }
+    if (breakdown) {
+      // What each field effect of the truth costs a single track: the truth without it, and the
+      // nominal machine with it alone (the same coils as the truth), interleaved run by run.
+      std::printf("\n== The truth's field effects, one at a time (single track, default stepper, median of %d)\n", repeat);
+      const Loaded& T = loaded[1];
+      struct Variant {
+        std::string name;
+        Machine m;
+      };
+      std::vector<Variant> vs;
+      const auto without = [&](const std::string& name, auto clear) {
+        Machine m = T.m;
+        clear(m.effect_set);
+        vs.push_back({name, m});
+      };
+      using Fx = Effects;
+      without("truth", [](Fx&) {});
+      without("- field-harmonic", [](Fx& e) { e.field_harmonics.clear(); });
+      without("- sector-strength", [](Fx& e) { e.sector_strengths.clear(); });
+      without("- trimcoil-sectors", [](Fx& e) { e.trimcoil_sectors.clear(); });
+      without("no field effect", [](Fx& e) {
+        e.field_harmonics.clear();
+        e.sector_strengths.clear();
+        e.trimcoil_sectors.clear();
+      });
+      without("nothing (coils 0)", [](Fx& e) { e = Fx{}; });
+      for (auto& t : vs.back().m.trimcoils) t.bmax_T = 0;
+      std::vector<TrackModel> models;
+      for (const auto& v : vs) models.push_back(make_track_model(v.m));
+      std::vector<std::vector<double>> times(vs.size());
+      for (int k = 0; k < repeat; ++k)
+        for (size_t v = 0; v < vs.size(); ++v) {
+          std::vector<TurnRecord> a;
+          const auto t0 = Clock::now();
+          track_particle(models[v], T.s0, T.ts, a);
+          times[v].push_back(seconds_since(t0) * 1e3);
+        }
+      for (size_t v = 0; v < vs.size(); ++v)
+        std::printf("%-22s %8.2f ms  %5.2fx of nothing\n", vs[v].name.c_str(), median(times[v]),
+                    median(times[v]) / median(times.back()));
+    }
 
-  if (!only_designs) std::printf("\n== Bunches of %zu particles, 182 turns, one thread (ring8's bunch block; PSI: "
-                                 "1 mm mrad, 0.05 MeV, 1 deg)\n", particles);
-  if (!only_designs) std::printf("%-14s %22s %22s %8s %24s\n", "machine", "reference [pt/s]", "default [pt/s]", "ratio",
-              "max |dr| vs single [mm]");
-  for (size_t c = 0; c < (only_designs ? 0 : loaded.size()); ++c) {
-    Loaded& L = loaded[c];
-    Bunch b = L.m.bunch ? *L.m.bunch : Bunch{};
-    if (!L.m.bunch) {
-      b.emittance_r_mm_mrad = 1;
-      b.beta_r_m = 2;
-      b.sigma_E_MeV = 0.05;
-      b.sigma_phase_deg = 1;
+    std::printf("\n== Bunches of %zu particles, 182 turns, one thread (ring8's bunch block; PSI: "
+                "1 mm mrad, 0.05 MeV, 1 deg)\n", particles);
+    std::printf("%-14s %22s %22s %8s %24s\n", "machine", "reference [pt/s]", "default [pt/s]", "ratio",
+                "max |dr| vs single [mm]");
+    for (size_t c = 0; c < loaded.size(); ++c) {
+      Loaded& L = loaded[c];
+      Bunch b = L.m.bunch ? *L.m.bunch : Bunch{};
+      if (!L.m.bunch) {
+        b.emittance_r_mm_mrad = 1;
+        b.beta_r_m = 2;
+        b.sigma_E_MeV = 0.05;
+        b.sigma_phase_deg = 1;
+      }
+      const Injection inj = effective_injection(L.m);
+      std::vector<ParticleState> starts;
+      for (const auto& o : gaussian_bunch(b, particles, 1))
+        starts.push_back(offset_state(inj, L.m.particle.mass_MeV, L.model.rf_MHz, o));
+      TrackSettings ref = L.ts;
+      ref.reference_stepper = true;
+      std::vector<std::vector<TurnRecord>> tr(particles), tf(particles), ts(particles);
+      std::vector<TrackEnd> er(particles), ef(particles);
+      auto t0 = Clock::now();
+      double pt = 0;
+      for (size_t i = 0; i < particles; ++i) pt += (er[i] = track_particle(L.model, starts[i], ref, tr[i])).turns;
+      const double t_ref = seconds_since(t0);
+      t0 = Clock::now();
+      track_particles(L.model, starts.data(), particles, L.ts, tf.data(), ef.data());
+      const double t_fast = seconds_since(t0);
+      double pf = 0, worst = 0;
+      for (size_t i = 0; i < particles; ++i) {
+        pf += ef[i].turns;
+        track_particle(L.model, starts[i], L.ts, ts[i]);
+        worst = std::max(worst, worst_dr(tf[i], ts[i]));
+      }
+      std::printf("%-14s %22.0f %22.0f %7.2fx %24.2e\n", cases[c].name.c_str(), pt / t_ref, pf / t_fast,
+                  (pf / t_fast) / (pt / t_ref), worst);
     }
-    const Injection inj = effective_injection(L.m);
-    std::vector<ParticleState> starts;
-    for (const auto& o : gaussian_bunch(b, particles, 1))
-      starts.push_back(offset_state(inj, L.m.particle.mass_MeV, L.model.rf_MHz, o));
-    TrackSettings ref = L.ts;
-    ref.reference_stepper = true;
-    std::vector<std::vector<TurnRecord>> tr(particles), tf(particles), ts(particles);
-    std::vector<TrackEnd> er(particles), ef(particles);
-    auto t0 = Clock::now();
-    double pt = 0;
-    for (size_t i = 0; i < particles; ++i) pt += (er[i] = track_particle(L.model, starts[i], ref, tr[i])).turns;
-    const double t_ref = seconds_since(t0);
-    t0 = Clock::now();
-    track_particles(L.model, starts.data(), particles, L.ts, tf.data(), ef.data());
-    const double t_fast = seconds_since(t0);
-    double pf = 0, worst = 0;
-    for (size_t i = 0; i < particles; ++i) {
-      pf += ef[i].turns;
-      track_particle(L.model, starts[i], L.ts, ts[i]);
-      worst = std::max(worst, worst_dr(tf[i], ts[i]));
-    }
-    std::printf("%-14s %22.0f %22.0f %7.2fx %24.2e\n", cases[c].name.c_str(), pt / t_ref, pf / t_fast,
-                (pf / t_fast) / (pt / t_ref), worst);
   }
 
   {
