@@ -43,8 +43,8 @@ EffectParam param(const std::string& key, const std::string& unit, std::vector<s
 constexpr double kHarmonicBound_T = 1e-2;
 constexpr double kSectorBound = 1e-2;
 constexpr double kTiltBound = 1.0;
-// A gap bow's screen: the quadratic through its signatures at +-0.2 of its range (104 mm for
-// ring8's main cavities, 53 mm for ft), the sizes of the blind suite's visible bows.
+// A gap bow's screen: its path's unit, 0.2 of its range (104 mm for ring8's main cavities, 53 mm
+// for ft, the sizes of the blind suite's visible bows); the path runs from 1/8 to 2 times it.
 constexpr double kBowCurveStep = 0.2;
 
 std::string mm(double v) { return cli::fmt(std::round(v), 6) + " mm"; }

@@ -36,8 +36,9 @@ struct Candidate {
   /// the sum of its coils' single-coil signatures (`atoms`, indices into the atom list).
   bool discrete = false;
   std::vector<size_t> atoms;
-  /// A curved signature (one parameter): screened on a quadratic through the signatures at
-  /// +-curve_step instead of the tangent at absent (0: linear, the tangent). A gap bow's is: at
+  /// A curved signature (one parameter): screened along a path, its signature at sizes of
+  /// +-1/8 to +-2 times curve_step with the variables moved along the valley its tangent
+  /// opens, instead of on the tangent at absent (0: linear, the tangent). A gap bow's is: at
   /// the crest its energy gain changes with the square of the bow, and the variables take up
   /// nearly all of the tangent.
   double curve_step = 0;
