@@ -404,17 +404,31 @@ CentroidTurns centroid_turns(const TrackModel& model, const ParticleState& refer
   std::vector<std::vector<TurnRecord>> turns(np);
   std::vector<TrackEnd> ends(np);
   std::vector<std::exception_ptr> error(groups);
+  // A probe records only the particles that cross it within its extent, and a turn near an end
+  // is seen in part. The nodes are tracked with probes of unlimited extent, so that the bunch's
+  // spread across the end is known (the path does not depend on the extent: a crossing records
+  // or not, nothing else), and the reference's records are kept where the real probe has them.
+  TrackModel unlimited = model;
+  for (auto& pl : unlimited.probes) {
+    pl.s_min_m = -1e9;
+    pl.s_max_m = 1e9;
+  }
   parallel_for(groups, threads, [&](size_t g, unsigned) {
     const size_t first = g * np / groups, last = (g + 1) * np / groups;
     try {
-      track_particles(model, starts.data() + first, last - first, settings, turns.data() + first, ends.data() + first);
+      track_particles(unlimited, starts.data() + first, last - first, settings, turns.data() + first,
+                      ends.data() + first);
     } catch (...) {
       error[g] = std::current_exception();
     }
   });
   for (const auto& e : error)
     if (e) std::rethrow_exception(e);
-  out.reference = std::move(turns[0]);
+  // The reference's crossings within the extent (land_and_act's test: s - shift in [s_min, s_max]).
+  for (const auto& t : turns[0]) {
+    const ProbeLine& pl = model.probes[static_cast<size_t>(t.probe)];
+    if (t.s_mm >= pl.s_min_m * 1e3 && t.s_mm <= pl.s_max_m * 1e3) out.reference.push_back(t);
+  }
   out.end = ends[0];
   for (size_t q = 1; q < np; ++q) {
     const size_t i = node_of[q];
@@ -452,6 +466,39 @@ CentroidTurns centroid_turns(const TrackModel& model, const ParticleState& refer
     if (!all) {
       ++out.unknown;
       continue;
+    }
+    // The part of the bunch the probe sees: the Gaussian with the nodes' mean and spread along
+    // the probe, cut at the extent's ends, has its mean sigma (phi(a) - phi(b)) / (Phi(b) - Phi(a))
+    // away (a, b the ends in sigmas from the mean); the radius follows the position along the
+    // probe by the nodes' regression of one on the other. Ends more than kCutSigmas away change
+    // nothing (at 5 sigmas the cut moves the mean by 1.5e-6 sigma), so turns clear of the ends
+    // keep the quadrature's mean bit for bit. A bunch the probe sees less than kSeenMin of is
+    // not predicted (the reference's record, as for a missed crossing).
+    {
+      constexpr double kCutSigmas = 5, kSeenMin = 0.05;
+      double vs = 0, crs = 0;
+      for (size_t i = 0; i < n; ++i) {
+        const TurnRecord& t = hit[i][p][k];
+        vs += nodes[i].weight * (t.s_mm - mean.s_mm) * (t.s_mm - mean.s_mm);
+        crs += nodes[i].weight * (t.s_mm - mean.s_mm) * (t.r_mm - mean.r_mm);
+      }
+      const ProbeLine& pl = model.probes[p];
+      if (vs > 0) {
+        const double sd = std::sqrt(vs);
+        const double a = (pl.s_min_m * 1e3 - mean.s_mm) / sd, b = (pl.s_max_m * 1e3 - mean.s_mm) / sd;
+        if (a > -kCutSigmas || b < kCutSigmas) {
+          const auto pdf = [](double u) { return std::exp(-0.5 * u * u) / std::sqrt(2 * kPi); };
+          const auto cdf = [](double u) { return 0.5 * std::erfc(-u / std::sqrt(2.0)); };
+          const double seen = cdf(b) - cdf(a);
+          if (!(seen >= kSeenMin)) {
+            ++out.unknown;
+            continue;
+          }
+          const double ds = sd * (pdf(a) - pdf(b)) / seen;
+          mean.s_mm += ds;
+          mean.r_mm += crs / vs * ds;
+        }
+      }
     }
     mean.phase_deg = ref.phase_deg + dphase;
     if (mean.phase_deg > 180) mean.phase_deg -= 360;

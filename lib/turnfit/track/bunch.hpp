@@ -65,17 +65,20 @@ std::vector<QuadratureNode> machine_bunch_quadrature(const Machine& m, const std
 struct CentroidTurns {
   std::vector<TurnRecord> reference;  ///< the reference particle's crossings
   std::vector<TurnRecord> centre;     ///< the same crossings, every column the quadrature's mean
-  std::vector<unsigned char> known;   ///< per crossing: 1 where every node crossed there too
-  size_t unknown = 0;                 ///< crossings some node missed: centre = reference there
+  std::vector<unsigned char> known;   ///< per crossing: 1 where every node crossed there too (at any s)
+  size_t unknown = 0;                 ///< crossings some node missed, or seen < 5 %: centre = reference there
   TrackEnd end;                       ///< how the reference particle's track ended
 };
 
 /// Tracks the reference particle from `reference` and every node of `nodes` (offset from `inj`
 /// as offset_state does) on `threads` threads, and averages each crossing (probe, turn) over the
 /// nodes with their weights: r, s, t and energy directly, the phase as the reference's plus the
-/// mean of each node's difference to it, wrapped to (-180, 180]. Where a node missed the
-/// crossing (lost, short of the last turn, or unable to start) the centre is the reference's
-/// record. Throws what tracking any of them throws (the steppers report losses instead; what
+/// mean of each node's difference to it, wrapped to (-180, 180]. A probe sees only the part of
+/// the bunch within its extent: where the nodes' spread along the probe (as a Gaussian) reaches
+/// within 5 sigmas of an end, r and s are the mean of the part inside (the truncated Gaussian's
+/// mean, r following s by the nodes' regression; t, energy and phase stay the whole bunch's).
+/// Where a node missed the crossing (lost, short of the last turn, or unable to start), or the
+/// probe sees less than 5 % of the bunch, the centre is the reference's record. Throws what tracking any of them throws (the steppers report losses instead; what
 /// is left is running out of memory).
 CentroidTurns centroid_turns(const TrackModel& model, const ParticleState& reference, const Injection& inj,
                              double mass_MeV, const std::vector<QuadratureNode>& nodes, const TrackSettings& settings,
