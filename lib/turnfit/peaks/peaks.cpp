@@ -1279,8 +1279,26 @@ PeakResult find_peaks(const std::vector<double>& x, const std::vector<double>& y
       // One turn's area: the neighbours', unless most of them hold two turns too (then the
       // whole profile's median, where most turns are resolved, knows better).
       const double ae = std::min(neighbour_median(area, i, 6), median(area));
-      if (!(ae > 0) || area[i] < s.split_area * ae) continue;
-      const int k = std::clamp(static_cast<int>(std::lround(area[i] / ae)), 2, 4);
+      if (!(ae > 0)) continue;
+      // A neighbour that lacks area may have lost it to this peak: two close turns fitted as a
+      // small and a large Gaussian (the large one wide enough to cover the other's flank) hold
+      // two turns between them, not one plus k. What the neighbour lacks of a turn's area (from
+      // under three quarters of it) does not count for this peak.
+      // The neighbour's position then rests on a bad split: it is flagged weak (its uncertainty
+      // grows with the area it lacks).
+      double own = area[i];
+      std::vector<size_t> lenders;
+      for (size_t j : {i - 1, i + 1})
+        if (j < g.size() && !(g[j].flags & (kPeakMerged | kPeakWide)) && area[j] < 0.75 * ae) {
+          own -= ae - area[j];
+          lenders.push_back(j);
+        }
+      if (own < s.split_area * ae) {
+        if (area[i] >= s.split_area * ae)
+          for (size_t j : lenders) g[j].flags |= kPeakWeak;
+        continue;
+      }
+      const int k = std::clamp(static_cast<int>(std::lround(own / ae)), 2, 4);
       if (!s.split) {
         g[i].flags |= kPeakWide;
         g[i].turns = k;
