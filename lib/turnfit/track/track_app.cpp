@@ -249,8 +249,9 @@ int run_track(const TrackOptions& o) {
     write_turns_csv(out.stream(), model, ct.centre, {ct.end}, !o.common.no_provenance);
     out.commit();
     if (ct.unknown)
-      cli::warn(o.common, std::to_string(ct.unknown) + " crossings that a particle of the quadrature misses keep the "
-                                                       "reference particle's record");
+      cli::warn(o.common, std::to_string(ct.unknown) +
+                                " crossings that a particle of the quadrature misses, or where the probe sees under 5 % "
+                                "of the bunch, keep the reference particle's record");
     if (ct.end.lost) cli::warn(o.common, ct.end.status);
     return 0;
   }
