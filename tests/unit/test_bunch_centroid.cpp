@@ -258,6 +258,7 @@ TEST_CASE("centroid: a turn cut by the probe's end is the mean of the part the p
   INFO("RRI2 turn " << turn << ": mean s " << ms << " mm, spread " << sd << " mm");
   REQUIRE(sd > 1);
 
+  const CentroidTurns plain = centroid_turns(full, ref, inj, m.particle.mass_MeV, nodes, st, 2);
   for (double cut : {0.3, -0.8, 1.6}) {
     // The probe ends `cut` spreads beyond the turn's mean.
     TrackModel cutm = full;
@@ -271,7 +272,6 @@ TEST_CASE("centroid: a turn cut by the probe's end is the mean of the part the p
     }
     vr /= vw;
     const CentroidTurns ct = centroid_turns(cutm, ref, inj, m.particle.mass_MeV, nodes, st, 2);
-    const CentroidTurns plain = centroid_turns(full, ref, inj, m.particle.mass_MeV, nodes, st, 2);
     const TurnRecord* c = nullptr;
     for (size_t k = 0; k < ct.reference.size(); ++k)
       if (ct.reference[k].probe == 0 && ct.reference[k].turn == turn) {
