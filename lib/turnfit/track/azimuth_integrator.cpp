@@ -15,6 +15,7 @@
 #include "turnfit/io/error.hpp"
 #include "turnfit/physics/azimuth_eom.hpp"
 #include "turnfit/track/integrators.hpp"
+#include "turnfit/track/lane_clones.hpp"
 
 namespace turnfit::detail {
 namespace {
@@ -455,6 +456,7 @@ bool lane_step(AzParticle& p, double th, double h, int j0, const StageCells& sc,
 /// One grid step of h from the node th (in cell j0) for the lanes L[0..n), main field from the
 /// row table; ok[l] false for a lane a stage of which left the map or lost its azimuthal
 /// momentum (its state untouched). The arithmetic is step_az's, lane by lane.
+TURNFIT_LANE_CLONES
 void group_step(AzParticle* const* L, int n, double th, double h, int j0, const StageCells& sc,
                 const FieldRowTable& tab, TermCache* const* cache, long long node, bool* ok) {
   if (n == 1) {

@@ -1,5 +1,6 @@
 // Assembling the tracking model from a machine description, and the machine's effects on it.
 #include "turnfit/track/model.hpp"
+#include "turnfit/track/lane_clones.hpp"
 
 #include <Eigen/Dense>
 
@@ -185,6 +186,7 @@ bool TrackModel::field_with_effects(double r_m, double th, FieldSample& out, con
   return true;
 }
 
+TURNFIT_LANE_CLONES
 void TrackModel::add_coils_lanes(int n, const double* r, double th, const double* centre, double* bz, double* br,
                                  double* bt, CoilHints* const* hints) const {
   if (summed_for_ != coils.size()) {  // add_coils' own fallback
@@ -224,6 +226,7 @@ void TrackModel::add_coils_lanes(int n, const double* r, double th, const double
       coils[i].add(r[l], th, mb[l], mbr[l], mbt[l], threshold_T, bz[l], br[l], bt[l], centre[l]);
 }
 
+TURNFIT_LANE_CLONES
 void TrackModel::add_to_main_lanes(int n, const double* r, double th, double* bz, double* br, double* bt,
                                    const AzimuthTerms* terms, CoilHints* const* hints) const {
   if (!effects.active) {
@@ -271,6 +274,7 @@ void TrackModel::add_to_main_lanes(int n, const double* r, double th, double* bz
   }
 }
 
+TURNFIT_LANE_CLONES
 void TrackModel::add_to_main_models(int n, const TrackModel* const* models, const double* r, double th, double* bz,
                                     double* br, double* bt, const AzimuthTerms* const* terms,
                                     CoilHints* const* hints) {
