@@ -1,6 +1,5 @@
 // Assembling the tracking model from a machine description, and the machine's effects on it.
 #include "turnfit/track/model.hpp"
-#include "turnfit/track/lane_clones.hpp"
 
 #include <Eigen/Dense>
 
@@ -12,6 +11,7 @@
 #include "turnfit/field/load.hpp"
 #include "turnfit/io/error.hpp"
 #include "turnfit/physics/particle.hpp"
+#include "turnfit/track/lane_clones.hpp"
 
 namespace turnfit {
 
