@@ -24,7 +24,7 @@ using Eigen::VectorXd;
 
 namespace {
 
-// A round's refits run two at a time on a 2-core machine (refit_one below), each on one thread:
+// A round's refits run side by side (refit_one below; on 2 cores two at a time, each on one thread):
 // a refit's single designs (its line searches and trial steps) leave the other core idle, and
 // its Jacobians are as fast on one thread per refit as on two for one. While a refit runs so,
 // its worker's log lines go to the refit's own list (written out in pick order afterwards) and
@@ -249,7 +249,7 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
   };
   const TurnTable& meas = p.measured();
   const size_t N = meas.points.size();
-  std::atomic<size_t> evaluations{0};  // refits run two at a time add to it
+  std::atomic<size_t> evaluations{0};  // refits run side by side add to it
 
   // 1. Base fit. From the machine's values, localsearch's least squares first (its own sigma
   // estimate, turn continuation: it finds the valley from far); a --start from an earlier fit
@@ -639,7 +639,7 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
   std::vector<Selected> selected;
   LocalSearchResult st_fit = out.base_fit;  // the fit of the state st (every variable it holds)
   std::map<std::string, json> cand_report;  // label -> report row (the last round's screen)
-  std::mutex report_mu;                     // guards cand_report while refits run two at a time
+  std::mutex report_mu;                     // guards cand_report while refits run side by side
   std::vector<double> e_state;
   Linear L;
   MatrixXd atom_cols;  // data rows x atoms, at the current state
@@ -1165,7 +1165,7 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
         log("  refit " + c.label + " from the machine's values: chi2 " + cli::fmt(c2b, 6) + " against " +
             cli::fmt(rf.c2, 6) + " from the base fit (" + std::to_string(r2.evaluations) + " designs)");
         {
-          std::lock_guard<std::mutex> lock(report_mu);  // refits run two at a time
+          std::lock_guard<std::mutex> lock(report_mu);  // refits run side by side
           cand_report[c.label]["refit_from_start"] = {{"delta_chi2", chi2_now - c2b}, {"evaluations", r2.evaluations}};
         }
         if (c2b < rf.c2) {
@@ -1186,7 +1186,7 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
       for (Refit* rf : todo) whole_fit(*rf);
     };
     // A refit's outcome, kept until the refits run beside it are done: the refit or why it
-    // failed, and its log lines (refits run two at a time write their lines here).
+    // failed, and its log lines (a refit writes its lines here while it runs).
     struct RefitSlot {
       std::optional<Refit> rf;
       std::optional<json> fail;
@@ -1323,25 +1323,21 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
     // kept 1.6 of 2 cores busy with one refit at a time.
     {
       std::vector<RefitSlot> slots(picks.size());
-      const size_t workers = std::min<size_t>(threads, picks.size());
-      if (workers >= 2) {
-        const unsigned each = std::max(1u, threads / static_cast<unsigned>(workers));
-        parallel_for(picks.size(), static_cast<unsigned>(workers), [&](size_t pi, unsigned) {
-          struct Scope {  // this worker's log and thread share, reset however the refit ends
-            Scope(std::vector<std::string>* lines, unsigned n) {
-              tl_log = lines;
-              tl_threads = n;
-            }
-            ~Scope() {
-              tl_log = nullptr;
-              tl_threads = 0;
-            }
-          } scope(&slots[pi].lines, each);
-          refit_one(picks[pi], pi < primary, slots[pi]);
-        });
-      } else {
-        for (size_t pi = 0; pi < picks.size(); ++pi) refit_one(picks[pi], pi < primary, slots[pi]);
-      }
+      // (One worker, with one thread or one pick, runs on this thread with every thread.)
+      const unsigned workers = static_cast<unsigned>(std::max<size_t>(1, std::min<size_t>(threads, picks.size())));
+      parallel_for(picks.size(), workers, [&](size_t pi, unsigned) {
+        struct Scope {  // this worker's log and thread share, reset however the refit ends
+          Scope(std::vector<std::string>* lines, unsigned n) {
+            tl_log = lines;
+            tl_threads = n;
+          }
+          ~Scope() {
+            tl_log = nullptr;
+            tl_threads = 0;
+          }
+        } scope(&slots[pi].lines, std::max(1u, threads / workers));
+        refit_one(picks[pi], pi < primary, slots[pi]);
+      });
       for (auto& sl : slots) merge(sl);
     }
     auto best_gain = [&] {
