@@ -354,6 +354,51 @@ TEST_CASE("diagnose: a concealed first-harmonic bump is named, sized and refitte
                                                       }));
 }
 
+TEST_CASE("diagnose limits: each linear detection limit is checked by fits of the variables, and on a near-linear "
+          "problem the fits agree with it",
+          "[diagnose]") {
+  TempDir tmp;
+  std::vector<double> xt;
+  const Machine truth = moved_ring8({"rinit", "vchange"}, {0.02, -0.03}, xt);
+  const std::string peaks = turns_as_peaks(truth, tmp, "control.csv");
+  auto p = load_turn_problem(tmp.file("control.json", "{\"format\": \"turnfit-problem/1\", \"machine\": \"" +
+                                                          ring8("machine.json") + "\", \"peaks\": \"" + peaks +
+                                                          "\", \"bunch\": \"reference\", \"variables\": [\"rinit\", "
+                                                          "\"prinit\", \"vchange\"]}"));
+  DiagnoseSettings s;
+  s.threads = 2;
+  s.types = {"sector-strength", "voltage-tilt"};
+  s.limit_checks = 2;
+  const Diagnosis d = diagnose(*p, p->start(), s);
+  CHECK(d.verdict == "nothing-missing");
+  CHECK(d.limit_check_designs > 0);
+  // The selection threshold k ln N + margin, k = 1 for both types.
+  const double T = std::log(static_cast<double>(p->measured().points.size())) + s.margin;
+  int checked = 0;
+  for (const auto& c : d.candidates) {
+    INFO(c["label"].get<std::string>());
+    REQUIRE(c.contains("limit_check"));  // nothing passes on a control: every one is checked
+    for (const auto& ch : c["limit_check"]) {
+      ++checked;
+      const double linear = ch["linear"].get<double>();
+      REQUIRE(ch["limit"].is_number());
+      const double limit = ch["limit"].get<double>();
+      // Three variables and sizes of a few 1e-5 move the turns by microns: the fits' chi2 is
+      // the linear model's, so the limits agree (a check that fitted nothing would leave the
+      // whole signature, hundreds of times the threshold, and put the limit far below).
+      CHECK(limit == Approx(linear).epsilon(0.15));
+      CHECK(c["detection_limit"][ch["parameter"].get<std::string>()].get<double>() == limit);
+      for (const auto& z : ch["sizes"]) {
+        // What a fit leaves at each size grows with its square, through T at the limit.
+        const double size = z["size"].get<double>();
+        CHECK(z["delta_chi2"].get<double>() == Approx(T * std::pow(size / limit, 2)).epsilon(0.3));
+        CHECK(z["delta_chi2"].get<double>() == Approx(z["linear_delta_chi2"].get<double>()).epsilon(0.3));
+      }
+    }
+  }
+  CHECK(checked >= 10);  // 8 sectors, the tilts of the cavities
+}
+
 TEST_CASE("diagnose: look-alike sectors are refitted beside the strongest, so the screen's order does not decide alone",
           "[diagnose]") {
   TempDir tmp;

@@ -191,9 +191,10 @@ PathMin path_min(const VectorXd& u, const MatrixXd& PS, const std::vector<double
 }
 
 // On a segment ||s||^2 is convex in x: a crossing is on the first segment whose end is over T.
-double path_limit(const MatrixXd& PS, const std::vector<double>& b, double T) {
+double path_limit(const MatrixXd& PS, const std::vector<double>& b, double T, int* side) {
   const size_t zero = static_cast<size_t>(std::find(b.begin(), b.end(), 0.0) - b.begin());
   double worst = 0;
+  if (side) *side = 1;
   for (int dir : {1, -1}) {
     double found = std::numeric_limits<double>::quiet_NaN();
     for (size_t i = zero; dir > 0 ? i + 1 < b.size() : i > 0; i = dir > 0 ? i + 1 : i - 1) {
@@ -209,6 +210,7 @@ double path_limit(const MatrixXd& PS, const std::vector<double>& b, double T) {
       break;
     }
     if (std::isnan(found)) return found;
+    if (found > worst && side) *side = dir;
     worst = std::max(worst, found);
   }
   return worst;
@@ -588,6 +590,129 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
     return out_cols;
   };
 
+  // The nonlinear check of a detection limit at one size: the state's model with `entries`
+  // (the effect at that size), tracked at the state's design, is taken as the measurement, and
+  // the variables alone are fitted to it from there (the refits' least squares, taken on to
+  // convergence), under the state's noise and centroid shift. `chi2` is what they cannot take
+  // up: the data rows, whitened, and one prior row per variable toward the state's design (as
+  // the linear limit counts them); `linear_chi2` what the linear model at the state says of the
+  // same signature; `dx` the variables' moves.
+  struct LimitCheck {
+    bool ok = false;
+    double chi2 = 0, linear_chi2 = 0;
+    VectorXd dx;
+    size_t designs = 0;
+  };
+  auto check_size = [&](const State& S, const Linear& Lin, const std::vector<json>& entries) {
+    LimitCheck lc;
+    const Index nd = static_cast<Index>(Lin.data), n = static_cast<Index>(S.x.size());
+    const auto& vars = S.prob->variables();
+    // chi2 as the limit counts it, of residual ev (every data row matched) at design x.
+    auto rows_chi2 = [&](const std::vector<double>& ev, const std::vector<unsigned char>& m,
+                         const std::vector<double>& x, VectorXd* f_out) {
+      VectorXd f(nd + n);
+      for (Index r = 0; r < nd; ++r) {
+        const size_t i = rows.point[static_cast<size_t>(r)];
+        if (!m[i]) return std::numeric_limits<double>::infinity();
+        f[r] = ev[i];
+      }
+      rows.white.whiten(f.head(nd));
+      for (Index j = 0; j < n; ++j)
+        f[nd + j] = (x[static_cast<size_t>(j)] - S.x[static_cast<size_t>(j)]) / prior_sigma(vars[static_cast<size_t>(j)]);
+      if (f_out) *f_out = f;
+      return f.squaredNorm();
+    };
+    try {
+      Machine v = S.prob->machine();
+      append_entries(v, entries);
+      std::vector<unsigned char> m;
+      const std::vector<double> e_eff = residual(*S.prob->with_machine(std::move(v), vars, S.x, true), S.x, m);
+      ++lc.designs;
+      std::vector<double> dr(N, 0.0);
+      for (Index r = 0; r < nd; ++r) {
+        const size_t i = rows.point[static_cast<size_t>(r)];
+        if (!m[i]) return lc;  // the effect loses a turn: no check
+        dr[i] = e_eff[i];
+      }
+      // The measurement the model with the effect predicts at the state: meas + e_eff.
+      auto q = S.prob->with_machine(S.prob->machine(), vars, S.x, true);
+      q->shift_measured(dr);
+      std::vector<unsigned char> m0;
+      VectorXd f0;
+      if (!std::isfinite(rows_chi2(residual(*q, S.x, m0), m0, S.x, &f0))) return lc;
+      ++lc.designs;
+      lc.linear_chi2 = (f0 - Lin.J * Eigen::HouseholderQR<MatrixXd>(Lin.J).solve(f0)).squaredNorm();
+      LocalSearchResult r = local_search(*q, S.x, on_threads(ps));
+      lc.designs += r.evaluations;
+      std::vector<unsigned char> m1;
+      lc.chi2 = rows_chi2(residual(*q, r.x, m1), m1, r.x, nullptr);
+      ++lc.designs;
+      lc.dx.resize(n);
+      for (Index j = 0; j < n; ++j) lc.dx[j] = r.x[static_cast<size_t>(j)] - S.x[static_cast<size_t>(j)];
+      lc.ok = std::isfinite(lc.chi2);
+    } catch (const Error&) {
+      lc.ok = false;
+    }
+    return lc;
+  };
+  // A candidate's entries with its parameters at absent + size u (u a direction in them).
+  auto entries_at = [](const Candidate& c, const VectorXd& u, double size) {
+    std::vector<json> entries = c.entries;
+    for (size_t q = 0; q < c.params.size(); ++q)
+      for (size_t e : c.params[q].entries) entries[e][c.params[q].key] = c.params[q].absent + size * u[static_cast<Index>(q)];
+    return entries;
+  };
+  // The detection limit along u checked from the linear one: sizes checked (at most
+  // s.limit_checks) until one's chi2 is within 25 % of the threshold T, each next size from the
+  // last two by a power law in the size (from one: chi2 as its square), within the range.
+  struct LimitSearch {
+    double limit = std::numeric_limits<double>::quiet_NaN();  ///< NaN: not checked
+    bool beyond_range = false;  ///< the range's end is checked and stays under T
+    std::vector<std::pair<double, LimitCheck>> sizes;
+  };
+  auto search_limit = [&](const State& S, const Linear& Lin, const Candidate& c, const VectorXd& u, double linear,
+                          double T) {
+    LimitSearch ls;
+    double smax = std::numeric_limits<double>::infinity();
+    for (size_t q = 0; q < c.params.size(); ++q) {
+      const double uq = u[static_cast<Index>(q)];
+      const EffectParam& prm = c.params[q];
+      if (uq > 0) smax = std::min(smax, (prm.upper - prm.absent) / uq);
+      if (uq < 0) smax = std::min(smax, (prm.lower - prm.absent) / uq);
+    }
+    if (!(linear > 0) || !std::isfinite(linear) || !(smax > 0)) return ls;
+    double size = std::min(linear, smax);
+    for (int k = 0; k < s.limit_checks; ++k) {
+      const LimitCheck lc = check_size(S, Lin, entries_at(c, u, size));
+      evaluations += lc.designs;
+      if (!lc.ok || !(lc.chi2 > 0)) break;
+      ls.sizes.push_back({size, lc});
+      double next;
+      const size_t m = ls.sizes.size();
+      const double g = lc.chi2;
+      if (m >= 2 && ls.sizes[m - 2].first != size && ls.sizes[m - 2].second.chi2 != g) {
+        const double s0 = ls.sizes[m - 2].first, g0 = ls.sizes[m - 2].second.chi2;
+        const double p = std::log(g / g0) / std::log(size / s0);
+        next = p > 0.25 ? size * std::pow(T / g, 1 / p) : size * std::sqrt(T / g);
+      } else {
+        next = size * std::sqrt(T / g);
+      }
+      if (g >= T / 1.25 && g <= T * 1.25) {
+        ls.limit = next;  // close enough: the last correction is within 12 %
+        break;
+      }
+      if (size >= smax && g < T) {
+        ls.beyond_range = true;
+        break;
+      }
+      ls.limit = next;
+      size = std::min(next, smax);
+    }
+    if (ls.sizes.empty()) ls.limit = std::numeric_limits<double>::quiet_NaN();
+    if (!ls.beyond_range && ls.limit > smax) ls.beyond_range = true;
+    return ls;
+  };
+
   const double logN = std::log(static_cast<double>(std::max<size_t>(2, N)));
   auto k_of = [](const Candidate& c) { return static_cast<int>(c.discrete ? 1 : c.params.size() + c.shape.size()); };
   auto threshold = [&](int k) { return k * logN + s.margin; };
@@ -935,60 +1060,134 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
     const MatrixXd Rinv = base.R.triangularView<Eigen::Upper>().solve(MatrixXd::Identity(base.R.rows(), base.R.cols()));
     const VectorXd post_sigma = Rinv.rowwise().norm();  // sqrt(diag((J^T J)^-1))
     const auto& vars = st.prob->variables();
-    for (const auto& row : screened) {
+    // Detection limit: the size whose signature, after the variables take up what they can,
+    // gains k ln N + margin in chi2 (the selection threshold), per direction u in the
+    // candidate's parameters: a bump's two quadratures at their worst phase, a path's worse
+    // side, each other parameter alone (the others fitted with it). NaN: none.
+    struct Direction {
+      std::string key;
+      VectorXd u;
+      double size;
+    };
+    auto linear_limits = [&](const Row& row) {
       const Candidate& c = *row.c;
-      const int k = k_of(c);
+      const double T = threshold(k_of(c));
+      std::vector<Direction> dirs;
+      auto finite = [](double v) { return std::isfinite(v) ? v : std::numeric_limits<double>::quiet_NaN(); };
+      if (c.discrete) {
+        const double m = row.sc.M(0, 0);
+        dirs.push_back({"scale", VectorXd::Ones(1), m > 0 ? finite(std::sqrt(T / m)) : std::nan("")});
+      } else if (c.type == "field-harmonic" && c.params.size() == 2) {
+        Eigen::SelfAdjointEigenSolver<MatrixXd> es(row.sc.M);
+        const double lmin = es.eigenvalues()[0];
+        dirs.push_back({"amplitude_T", es.eigenvectors().col(0), lmin > 0 ? finite(std::sqrt(T / lmin)) : std::nan("")});
+      } else if (!row.path.empty()) {
+        const MatrixXd PC = row.C - base.Q * (base.Q.transpose() * row.C);
+        int side = 1;
+        const double lim = path_limit(PC, row.path, T, &side);
+        dirs.push_back({c.params[0].key, VectorXd::Constant(1, side), lim});
+      } else {
+        for (size_t q = 0; q < c.params.size(); ++q) {
+          const double marg = row.sc.cov(static_cast<Index>(q), static_cast<Index>(q));
+          VectorXd u = VectorXd::Zero(static_cast<Index>(c.params.size()));
+          u[static_cast<Index>(q)] = 1;
+          dirs.push_back({c.params[q].key, u, marg > 0 ? finite(std::sqrt(T * marg)) : std::nan("")});
+        }
+      }
+      return dirs;
+    };
+    auto row_passes = [&](const Row& row) { return row.sc.dchi2 > threshold(k_of(*row.c)) && row.held > 0; };
+    // Round 1: the limits of the continuous candidates that do not pass, checked nonlinearly
+    // (the first screen's limits are the report's; a later round's state has other effects).
+    std::vector<std::vector<LimitSearch>> checked(screened.size());
+    if (round == 1 && s.limit_checks > 0) {
+      std::vector<std::pair<size_t, Direction>> todo;
+      for (size_t k = 0; k < screened.size(); ++k)
+        if (!screened[k].c->discrete && !row_passes(screened[k]))
+          for (auto& d : linear_limits(screened[k])) todo.push_back({k, std::move(d)});
+      for (size_t k = 0; k < screened.size(); ++k) checked[k].resize(linear_limits(screened[k]).size());
+      std::vector<size_t> slot(todo.size());
+      for (size_t t = 0, last = SIZE_MAX, q = 0; t < todo.size(); ++t) {
+        q = todo[t].first == last ? q + 1 : 0;
+        last = todo[t].first;
+        slot[t] = q;
+      }
+      const size_t designs_before = evaluations;
+      const auto t_check = std::chrono::steady_clock::now();
+      // One at a time, each fit's Jacobians on every thread.
+      for (size_t t = 0; t < todo.size(); ++t) {
+        const Row& row = screened[todo[t].first];
+        checked[todo[t].first][slot[t]] =
+            search_limit(st, L, *row.c, todo[t].second.u, todo[t].second.size, threshold(k_of(*row.c)));
+      }
+      out.limit_check_designs = evaluations - designs_before;
+      out.limit_check_wall_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t_check).count();
+      log("  " + std::to_string(todo.size()) + " detection limits checked nonlinearly: " +
+          std::to_string(out.limit_check_designs) + " designs, " + cli::fmt(out.limit_check_wall_s, 3) + " s");
+    }
+    for (size_t k = 0; k < screened.size(); ++k) {
+      const Row& row = screened[k];
+      const Candidate& c = *row.c;
+      const int kc = k_of(c);
       json j = {{"label", c.label},
                 {"type", c.type},
                 {"instance", c.instance},
                 {"round", round},
                 {"delta_chi2", row.sc.dchi2},
-                {"delta_bic", row.sc.dchi2 - k * logN},
+                {"delta_bic", row.sc.dchi2 - kc * logN},
                 {"held_out_gain", row.held},
-                {"parameters_k", k},
+                {"parameters_k", kc},
                 {"visible_fraction", row.sc.visible}};
-      // Detection limit: the size whose signature, after the variables take up what they can,
-      // gains k ln N + margin in chi2 (the selection threshold).
-      const double T = threshold(k);
-      json lim = json::object();
       if (c.discrete) {
-        const double m = row.sc.M(0, 0);
-        j["delta_chi2_if_present"] = m;
-        lim["scale"] = m > 0 ? jnum(std::sqrt(T / m)) : json(nullptr);
+        j["delta_chi2_if_present"] = row.sc.M(0, 0);
         j["scale"] = row.sc.c[0];
         j["scale_sigma"] = jnum(std::sqrt(row.sc.cov(0, 0)));
       } else if (c.type == "field-harmonic" && c.params.size() == 2) {
-        Eigen::SelfAdjointEigenSolver<MatrixXd> es(row.sc.M);
-        const double lmin = es.eigenvalues()[0];
-        lim["amplitude_T"] = lmin > 0 ? jnum(std::sqrt(T / lmin)) : json(nullptr);
         j["amplitude_T"] = std::hypot(row.sc.c[0], row.sc.c[1]);
-      } else if (!row.path.empty()) {
-        const MatrixXd PC = row.C - base.Q * (base.Q.transpose() * row.C);
-        lim[c.params[0].key] = jnum(path_limit(PC, row.path, T));
-        j[c.params[0].key] = row.sc.c[0];
       } else {
-        for (size_t q = 0; q < c.params.size(); ++q) {
-          const double marg = row.sc.cov(static_cast<Index>(q), static_cast<Index>(q));
-          lim[c.params[q].key] = marg > 0 ? jnum(std::sqrt(T * marg)) : json(nullptr);
-          j[c.params[q].key] = row.sc.c[static_cast<Index>(q)];
+        for (size_t q = 0; q < c.params.size(); ++q) j[c.params[q].key] = row.sc.c[static_cast<Index>(q)];
+      }
+      const std::vector<Direction> dirs = linear_limits(row);
+      json lim = json::object(), lin = json::object(), checks = json::array();
+      // What would absorb it: the variables' moves that take up the signature of the effect at
+      // its detection limit, in units of their uncertainty, largest first (the nonlinear
+      // check's moves at its last size, where it was checked; else the linear model's).
+      VectorXd move = VectorXd::Zero(static_cast<Index>(vars.size()));
+      bool have_move = false;
+      for (size_t q = 0; q < dirs.size(); ++q) {
+        lin[dirs[q].key] = jnum(dirs[q].size);
+        lim[dirs[q].key] = jnum(dirs[q].size);
+        const LimitSearch* ls = q < checked[k].size() && !checked[k][q].sizes.empty() ? &checked[k][q] : nullptr;
+        if (ls) {
+          lim[dirs[q].key] = ls->beyond_range ? json(nullptr) : jnum(ls->limit);
+          json sizes = json::array();
+          for (const auto& [size, lc] : ls->sizes)
+            sizes.push_back({{"size", size}, {"delta_chi2", lc.chi2}, {"linear_delta_chi2", lc.linear_chi2},
+                             {"designs", lc.designs}});
+          checks.push_back({{"parameter", dirs[q].key},
+                            {"linear", jnum(dirs[q].size)},
+                            {"limit", ls->beyond_range ? json(nullptr) : jnum(ls->limit)},
+                            {"beyond_range", ls->beyond_range},
+                            {"sizes", sizes}});
+          if (!have_move) move = ls->sizes.back().second.dx, have_move = true;
         }
       }
       j["detection_limit"] = lim;
-      // What would absorb it: the variables' moves that take up the signature of the effect at
-      // its detection limit, in units of their uncertainty, largest first.
-      {
-        VectorXd a(c.discrete ? 1 : static_cast<Index>(c.params.size()));
+      if (!checks.empty()) {
+        j["detection_limit_linear"] = lin;
+        j["limit_check"] = checks;
+      }
+      if (!have_move) {
+        VectorXd a = VectorXd::Zero(c.discrete ? 1 : static_cast<Index>(c.params.size()));
         if (c.discrete)
-          a[0] = 1;
-        else if (c.type == "field-harmonic" && c.params.size() == 2) {
-          Eigen::SelfAdjointEigenSolver<MatrixXd> es(row.sc.M);
-          a = es.eigenvectors().col(0) * (lim["amplitude_T"].is_number() ? lim["amplitude_T"].get<double>() : 0);
-        } else {
-          for (size_t q = 0; q < c.params.size(); ++q)
-            a[static_cast<Index>(q)] = lim[c.params[q].key].is_number() ? lim[c.params[q].key].get<double>() : 0;
-        }
-        VectorXd move = -base.R.triangularView<Eigen::Upper>().solve(base.Q.transpose() * signature(row.C, row.path, a));
+          a[0] = 1;  // the group as it is
+        else
+          for (const auto& d : dirs)
+            if (std::isfinite(d.size)) a += d.size * d.u;
+        move = -base.R.triangularView<Eigen::Upper>().solve(base.Q.transpose() * signature(row.C, row.path, a));
         if (!row.path.empty()) move += a[0] * row.valley;  // a path's sizes move the variables along its valley
+      }
+      {
         std::vector<std::pair<double, size_t>> order;
         for (Index q = 0; q < move.size(); ++q) order.push_back({std::fabs(move[q]) / post_sigma[q], static_cast<size_t>(q)});
         std::sort(order.rbegin(), order.rend());
@@ -1001,7 +1200,7 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
                           {"sigmas", order[q].first}});
         j["absorbed_by"] = by;
       }
-      const bool passes = row.sc.dchi2 > T && row.held > 0;
+      const bool passes = row_passes(row);
       // Absorbed: the variables take up 95 % or more of its signature (its limit is then 4.5
       // times or more what it would be without them).
       {
@@ -1009,7 +1208,7 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
         // A path's columns hold the variables' moves along its valley: without the variables,
         // the effect alone is its tangent.
         const double own = row.path.empty() ? alone : row.tangent2;
-        j["limit_without_variables"] = own > 0 ? jnum(std::sqrt(T / own)) : json(nullptr);
+        j["limit_without_variables"] = own > 0 ? jnum(std::sqrt(threshold(kc) / own)) : json(nullptr);
       }
       j["status"] = passes ? "candidate" : (row.sc.visible < 0.05 ? "absorbed" : "not-seen");
       // The row of the first screen (at the base fit) stays: its scores and detection limit are

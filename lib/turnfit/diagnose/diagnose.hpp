@@ -168,6 +168,11 @@ struct DiagnoseSettings {
   int challengers = 4;
   double challenge_fraction = 0.1;
   int folds = 5;                    ///< interleaved held-out folds
+  /// Round 1: the linear detection limit of each continuous candidate that does not pass,
+  /// checked nonlinearly at up to this many sizes (0: linear limits only): the base model with
+  /// the effect at that size is taken as the measurement, the variables are fitted to it, and
+  /// the chi2 they cannot take up is compared with the threshold (a refit per size: costly).
+  int limit_checks = 0;
   bool verbose = false;
   std::function<void(const std::string&)> log;  ///< progress lines (may be empty)
 };
@@ -197,7 +202,8 @@ PathMin path_min(const Eigen::VectorXd& u, const Eigen::MatrixXd& PS, const std:
 
 /// The size, whatever its sign, from which a path's signature gains T in chi2: the larger of
 /// the first crossings on each side of 0. NaN when one side stays below T over the sizes sampled.
-double path_limit(const Eigen::MatrixXd& PS, const std::vector<double>& b, double T);
+/// With `side`: the sign of the side it comes from (+1 when both agree).
+double path_limit(const Eigen::MatrixXd& PS, const std::vector<double>& b, double T, int* side = nullptr);
 
 /// The rivals ambiguous with a selected effect of k_selected parameters when every chi2 is divided
 /// by the overdispersion c (at least 1; quasi-likelihood, QBIC = chi2 / c + k ln N): those that
@@ -243,6 +249,9 @@ struct Diagnosis {
   std::vector<std::vector<double>> signatures_mm;
   size_t evaluations = 0;
   double wall_s = 0;
+  /// Designs and wall time of round 1's nonlinear checks of the detection limits.
+  size_t limit_check_designs = 0;
+  double limit_check_wall_s = 0;
 };
 
 /// Diagnoses problem p from design x0: base fit, noise, locate, screen every candidate in the

@@ -88,6 +88,10 @@ void add_diagnose_options(CLI::App& app, DiagnoseOptions& o) {
                  "DRIVE_MM or DRIVE_MM,CORR_MM (default corr 10 mm; overrides the problem's scan_noise; 0: the "
                  "turns independent)");
   app.add_option("--folds", o.settings.folds, "Interleaved held-out folds (default 5)")->check(CLI::Range(2, 50));
+  app.add_option("--limit-checks", o.settings.limit_checks,
+                 "Sizes at which each candidate's linear detection limit is checked by fitting the variables to the "
+                 "base model with the effect at that size (default 0: linear limits only; each size costs a fit)")
+      ->check(CLI::Range(0, 10));
   app.add_option("--measured-at", o.measured_at,
                  "I=PEAKS[,PEAKS...]: the machine's turns measured at beam current I [uA] (repeatable; two or more "
                  "make space charge a candidate, scored on what changes with the current)")
@@ -194,6 +198,7 @@ json diagnosis_report(const TurnPatternProblem& p, const Diagnosis& d, const std
   j["eliminations"] = d.eliminations;
   j["evaluations"] = d.evaluations;
   j["wall_s"] = d.wall_s;
+  j["limit_checks"] = {{"evaluations", d.limit_check_designs}, {"wall_s", d.limit_check_wall_s}};
   return j;
 }
 
@@ -309,7 +314,9 @@ std::string diagnosis_markdown(const TurnPatternProblem& p, const json& r) {
   // Detection limits, per type: the smallest and largest over the type's instances.
   md << "## What was checked, and what would have been seen\n\n"
         "Detection limit: the size whose signature, after the design variables take up what they can, "
-        "would pass the selection threshold (k ln N + margin in chi2) at this noise.\n\n"
+        "would pass the selection threshold (k ln N + margin in chi2) at this noise, in the model linearized at "
+        "the base fit; \"fits\" where it was checked by fitting the variables to the base model with the effect "
+        "at that size (--limit-checks).\n\n"
         "| candidate | status | delta chi2 | limit | taken up by |\n|---|---|---|---|---|\n";
   size_t rows = 0;
   for (const auto& c : r["candidates"]) {

@@ -319,6 +319,15 @@ std::unique_ptr<TurnPatternProblem> TurnPatternProblem::with_machine(Machine m, 
   return p;
 }
 
+void TurnPatternProblem::shift_measured(const std::vector<double>& dr_mm) {
+  if (dr_mm.size() != measured_.points.size())
+    throw Error(ExitCode::software, "shift_measured: one move per measured point");
+  for (size_t i = 0; i < dr_mm.size(); ++i) {
+    if (!std::isfinite(dr_mm[i])) throw Error(ExitCode::software, "shift_measured: a move that is not finite");
+    measured_.points[i].r_mm += dr_mm[i];
+  }
+}
+
 void TurnPatternProblem::set_sigma_mm(std::vector<double> sigma) {
   if (!sigma.empty() && sigma.size() != measured_.points.size())
     throw Error(ExitCode::software, "set_sigma_mm: one sigma per measured point");

@@ -151,6 +151,10 @@ class TurnPatternProblem : public Problem {
   /// Sets the peak-position uncertainty per measured point [mm] (empty: a fit estimates it).
   /// Not while evaluations run.
   void set_sigma_mm(std::vector<double> sigma);
+  /// Moves each measured radius by dr_mm (one per measured point, 0 leaves it): a simulated
+  /// measurement with the same turns, numbers and uncertainties, for checks of what a fit can
+  /// take up. Not while evaluations run; EX_SOFTWARE for a wrong size or a non-finite move.
+  void shift_measured(const std::vector<double>& dr_mm);
 
  private:
   /// simulate() of count designs xs[0..count) in one call of the group stepper.
