@@ -634,4 +634,19 @@ TEST_CASE("diagnose path: a curved signature's sampled path is minimized, interp
   CHECK(got16 > 0.9 * exact16);
   // A side that never reaches T over the sizes sampled: no limit.
   CHECK(std::isnan(path_limit(lin * 1e-6, b, T)));
+  // Each side apart: a signature a b + q b^2 / h is larger on the side where both terms add,
+  // so that side crosses first, and the limit is the other side's; with one side never
+  // reaching T, that side is NaN, the other still found.
+  double sides[2];
+  const double both = path_limit(lin + quad, b, T, sides);
+  INFO("sides " << sides[0] << ", " << sides[1]);
+  const bool plus_first = (a + q * (1 / h)).norm() > (a - q * (1 / h)).norm();
+  CHECK((plus_first ? sides[0] < sides[1] : sides[1] < sides[0]));
+  CHECK(both == std::max(sides[0], sides[1]));
+  Eigen::MatrixXd one_sided = lin * 1e-6;
+  for (size_t k = 0; k < b.size(); ++k)
+    if (b[k] > 0) one_sided.col(static_cast<Eigen::Index>(k)) = lin.col(static_cast<Eigen::Index>(k));
+  CHECK(std::isnan(path_limit(one_sided, b, T, sides)));
+  CHECK(sides[0] == Approx(std::sqrt(T) / a.norm()).epsilon(1e-9));
+  CHECK(std::isnan(sides[1]));
 }

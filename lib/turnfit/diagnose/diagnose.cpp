@@ -191,10 +191,10 @@ PathMin path_min(const VectorXd& u, const MatrixXd& PS, const std::vector<double
 }
 
 // On a segment ||s||^2 is convex in x: a crossing is on the first segment whose end is over T.
-double path_limit(const MatrixXd& PS, const std::vector<double>& b, double T, int* side) {
+double path_limit(const MatrixXd& PS, const std::vector<double>& b, double T, double* sides) {
   const size_t zero = static_cast<size_t>(std::find(b.begin(), b.end(), 0.0) - b.begin());
   double worst = 0;
-  if (side) *side = 1;
+  if (sides) sides[0] = sides[1] = std::numeric_limits<double>::quiet_NaN();
   for (int dir : {1, -1}) {
     double found = std::numeric_limits<double>::quiet_NaN();
     for (size_t i = zero; dir > 0 ? i + 1 < b.size() : i > 0; i = dir > 0 ? i + 1 : i - 1) {
@@ -209,9 +209,8 @@ double path_limit(const MatrixXd& PS, const std::vector<double>& b, double T, in
       found = std::fabs(b[i] + hi * (b[j] - b[i]));
       break;
     }
-    if (std::isnan(found)) return found;
-    if (found > worst && side) *side = dir;
-    worst = std::max(worst, found);
+    if (sides) sides[dir > 0 ? 0 : 1] = found;
+    worst = std::isnan(found) || std::isnan(worst) ? std::numeric_limits<double>::quiet_NaN() : std::max(worst, found);
   }
   return worst;
 }
@@ -1115,9 +1114,12 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
         dirs.push_back({"amplitude_T", es.eigenvectors().col(0), lmin > 0 ? finite(std::sqrt(T / lmin)) : std::nan("")});
       } else if (!row.path.empty()) {
         const MatrixXd PC = row.C - base.Q * (base.Q.transpose() * row.C);
-        int side = 1;
-        const double lim = path_limit(PC, row.path, T, &side);
-        dirs.push_back({c.params[0].key, VectorXd::Constant(1, side), lim});
+        // Each side: the curve is not symmetric (at the crest a bow's energy gain changes with
+        // its square), and the limit is the larger.
+        double sides[2];
+        path_limit(PC, row.path, T, sides);
+        dirs.push_back({c.params[0].key, VectorXd::Constant(1, 1.0), sides[0]});
+        dirs.push_back({c.params[0].key, VectorXd::Constant(1, -1.0), sides[1]});
       } else {
         for (size_t q = 0; q < c.params.size(); ++q) {
           const double marg = row.sc.cov(static_cast<Index>(q), static_cast<Index>(q));
@@ -1186,27 +1188,37 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
       // check's moves at its last size, where it was checked; else the linear model's).
       VectorXd move = VectorXd::Zero(static_cast<Index>(vars.size()));
       bool have_move = false;
+      // Per parameter, the largest over its directions (a path's two sides; NaN when one has
+      // none; infinite, null in the report, when the fits put one beyond the range).
+      std::map<std::string, double> lin_of, lim_of;
+      double reported = -1;
       for (size_t q = 0; q < dirs.size(); ++q) {
-        lin[dirs[q].key] = jnum(dirs[q].size);
-        lim[dirs[q].key] = jnum(dirs[q].size);
+        const Direction& d = dirs[q];
         const LimitSearch* ls = q < checked[k].size() && !checked[k][q].sizes.empty() ? &checked[k][q] : nullptr;
-        if (ls) {
-          lim[dirs[q].key] = ls->beyond_range ? json(nullptr) : jnum(ls->limit);
-          json sizes = json::array();
-          for (const auto& [size, lc] : ls->sizes) {
-            json fits = json::array();
-            for (const auto& [c2, ended] : lc.fits) fits.push_back({{"delta_chi2", c2}, {"termination", ended}});
-            sizes.push_back({{"size", size}, {"delta_chi2", lc.chi2}, {"linear_delta_chi2", lc.linear_chi2},
-                             {"designs", lc.designs}, {"fits", fits}});
-          }
-          checks.push_back({{"parameter", dirs[q].key},
-                            {"linear", jnum(dirs[q].size)},
-                            {"limit", ls->beyond_range ? json(nullptr) : jnum(ls->limit)},
-                            {"beyond_range", ls->beyond_range},
-                            {"sizes", sizes}});
-          if (!have_move) move = ls->sizes.back().second.dx, have_move = true;
+        const double got = !ls ? d.size : ls->beyond_range ? std::numeric_limits<double>::infinity() : ls->limit;
+        auto larger = [](double x, double y) { return std::isnan(x) || std::isnan(y) ? std::nan("") : std::max(x, y); };
+        const bool first = !lin_of.count(d.key);
+        lin_of[d.key] = first ? d.size : larger(lin_of[d.key], d.size);
+        lim_of[d.key] = first ? got : larger(lim_of[d.key], got);
+        if (!ls) continue;
+        json sizes = json::array();
+        for (const auto& [size, lc] : ls->sizes) {
+          json fits = json::array();
+          for (const auto& [c2, ended] : lc.fits) fits.push_back({{"delta_chi2", c2}, {"termination", ended}});
+          sizes.push_back({{"size", size}, {"delta_chi2", lc.chi2}, {"linear_delta_chi2", lc.linear_chi2},
+                           {"designs", lc.designs}, {"fits", fits}});
         }
+        checks.push_back({{"parameter", d.key},
+                          {"direction", std::vector<double>(d.u.data(), d.u.data() + d.u.size())},
+                          {"linear", jnum(d.size)},
+                          {"limit", ls->beyond_range ? json(nullptr) : jnum(ls->limit)},
+                          {"beyond_range", ls->beyond_range},
+                          {"sizes", sizes}});
+        // The variables' moves where the reported limit comes from.
+        if (got > reported) move = ls->sizes.back().second.dx, have_move = true, reported = got;
       }
+      for (const auto& [key, v] : lin_of) lin[key] = jnum(v);
+      for (const auto& [key, v] : lim_of) lim[key] = std::isinf(v) ? json(nullptr) : jnum(v);
       j["detection_limit"] = lim;
       if (!checks.empty()) {
         j["detection_limit_linear"] = lin;
@@ -1216,9 +1228,14 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
         VectorXd a = VectorXd::Zero(c.discrete ? 1 : static_cast<Index>(c.params.size()));
         if (c.discrete)
           a[0] = 1;  // the group as it is
-        else
+        else if (!row.path.empty()) {  // the side the limit comes from
+          double worst = -1;
+          for (const auto& d : dirs)
+            if (std::isfinite(d.size) && d.size > worst) a = d.size * d.u, worst = d.size;
+        } else {
           for (const auto& d : dirs)
             if (std::isfinite(d.size)) a += d.size * d.u;
+        }
         move = -base.R.triangularView<Eigen::Upper>().solve(base.Q.transpose() * signature(row.C, row.path, a));
         if (!row.path.empty()) move += a[0] * row.valley;  // a path's sizes move the variables along its valley
       }

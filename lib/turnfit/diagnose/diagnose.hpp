@@ -202,8 +202,8 @@ PathMin path_min(const Eigen::VectorXd& u, const Eigen::MatrixXd& PS, const std:
 
 /// The size, whatever its sign, from which a path's signature gains T in chi2: the larger of
 /// the first crossings on each side of 0. NaN when one side stays below T over the sizes sampled.
-/// With `side`: the sign of the side it comes from (+1 when both agree).
-double path_limit(const Eigen::MatrixXd& PS, const std::vector<double>& b, double T, int* side = nullptr);
+/// With `sides`: each side's crossing, the positive side's first (NaN where it stays below T).
+double path_limit(const Eigen::MatrixXd& PS, const std::vector<double>& b, double T, double* sides = nullptr);
 
 /// The rivals ambiguous with a selected effect of k_selected parameters when every chi2 is divided
 /// by the overdispersion c (at least 1; quasi-likelihood, QBIC = chi2 / c + k ln N): those that
