@@ -591,12 +591,11 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
 
   // The nonlinear check of a detection limit at one size: the state's model with `entries`
   // (the effect at that size), tracked at the state's design, is taken as the measurement, and
-  // the variables alone are fitted to it from where the linear model puts them (the refits'
-  // least squares, taken on to convergence), under the state's noise and centroid shift.
-  // `chi2` is what they cannot take
-  // up: the data rows, whitened, and one prior row per variable toward the state's design (as
-  // the linear limit counts them); `linear_chi2` what the linear model at the state says of the
-  // same signature; `dx` the variables' moves.
+  // the variables alone are fitted to it (the refits' least squares, taken on to convergence,
+  // from two starts), under the state's noise and centroid shift. `chi2` is what the better fit
+  // cannot take up: the data rows, whitened, and one prior row per variable toward the state's
+  // design (as the linear limit counts them); `linear_chi2` what the linear model at the state
+  // says of the same signature; `dx` the variables' moves.
   struct LimitCheck {
     bool ok = false;
     double chi2 = 0, linear_chi2 = 0;
