@@ -525,11 +525,24 @@ def run_case(case_path):
         shutil.rmtree(work, ignore_errors=True)
 
 
+def timeout_scale():
+    """TURNFIT_TIMEOUT_SCALE (default 1) multiplies every case's timeout: the timeouts are hang
+    guards sized for the Release build, and the sanitizer build (make -f Makefile.wrap check) runs
+    the same commands several times slower."""
+    try:
+        v = float(os.environ.get("TURNFIT_TIMEOUT_SCALE", "1"))
+    except ValueError:
+        raise CaseError("TURNFIT_TIMEOUT_SCALE: not a number")
+    if not (v > 0 and math.isfinite(v)):
+        raise CaseError("TURNFIT_TIMEOUT_SCALE: must be a positive number")
+    return v
+
+
 def check_case(name, case, bin_dir, shared, tmp, data, work):
     env = dict(os.environ)
     env.update({"SHARED": shared, "TMP": tmp, "DATA": data, "TURNFIT_BIN": bin_dir, "LC_ALL": "C"})
     env.update({k: str(v) for k, v in case.get("env", {}).items()})
-    timeout = case.get("timeout", 60)
+    timeout = case.get("timeout", 60) * timeout_scale()
 
     for i, argv in enumerate(case.get("setup", [])):
         argv = resolve_tool(argv, bin_dir)

@@ -104,7 +104,8 @@ def parse_marker(path, block, previous_sh):
         raise MarkerError("%s: show=%s: stdout, stderr, output or file:PATH" % (where, show))
     try:
         exit_code = int(fields.get("exit", "0"))
-        timeout = float(fields.get("timeout", "120"))
+        # TURNFIT_TIMEOUT_SCALE multiplies the hang guard (the sanitizer build runs slower).
+        timeout = float(fields.get("timeout", "120")) * float(os.environ.get("TURNFIT_TIMEOUT_SCALE", "1"))
     except ValueError as e:
         raise MarkerError("%s: %s" % (where, e))
     return {"group": fields["group"], "command": command, "source": source, "show": show,
