@@ -90,7 +90,7 @@ void add_diagnose_options(CLI::App& app, DiagnoseOptions& o) {
   app.add_option("--folds", o.settings.folds, "Interleaved held-out folds (default 5)")->check(CLI::Range(2, 50));
   app.add_option("--limit-checks", o.settings.limit_checks,
                  "Sizes at which each candidate's linear detection limit is checked by fitting the variables to the "
-                 "base model with the effect at that size (default 0: linear limits only; each size costs a fit)")
+                 "base model with the effect at that size (default 0: linear limits only; each size costs two fits)")
       ->check(CLI::Range(0, 10));
   app.add_option("--measured-at", o.measured_at,
                  "I=PEAKS[,PEAKS...]: the machine's turns measured at beam current I [uA] (repeatable; two or more "
