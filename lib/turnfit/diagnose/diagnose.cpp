@@ -738,7 +738,6 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
       ls.limit = next;
       size = std::min(next, smax);
     }
-    if (ls.sizes.empty()) ls.limit = std::numeric_limits<double>::quiet_NaN();
     if (!ls.beyond_range && ls.limit > smax) ls.beyond_range = true;
     return ls;
   };
@@ -1132,26 +1131,23 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
     auto row_passes = [&](const Row& row) { return row.sc.dchi2 > threshold(k_of(*row.c)) && row.held > 0; };
     // Round 1: the limits of the continuous candidates that do not pass, checked nonlinearly
     // (the first screen's limits are the report's; a later round's state has other effects).
+    // Each row's linear limits, computed once (the checks and the report rows use them).
+    std::vector<std::vector<Direction>> dirs_of(screened.size());
+    for (size_t k = 0; k < screened.size(); ++k) dirs_of[k] = linear_limits(screened[k]);
     std::vector<std::vector<LimitSearch>> checked(screened.size());
     if (round == 1 && s.limit_checks > 0) {
-      std::vector<std::pair<size_t, Direction>> todo;
-      for (size_t k = 0; k < screened.size(); ++k)
+      std::vector<std::pair<size_t, size_t>> todo;  // (row, direction)
+      for (size_t k = 0; k < screened.size(); ++k) {
+        checked[k].resize(dirs_of[k].size());
         if (!screened[k].c->discrete && !row_passes(screened[k]))
-          for (auto& d : linear_limits(screened[k])) todo.push_back({k, std::move(d)});
-      for (size_t k = 0; k < screened.size(); ++k) checked[k].resize(linear_limits(screened[k]).size());
-      std::vector<size_t> slot(todo.size());
-      for (size_t t = 0, last = SIZE_MAX, q = 0; t < todo.size(); ++t) {
-        q = todo[t].first == last ? q + 1 : 0;
-        last = todo[t].first;
-        slot[t] = q;
+          for (size_t q = 0; q < dirs_of[k].size(); ++q) todo.push_back({k, q});
       }
       const size_t designs_before = evaluations;
       const auto t_check = std::chrono::steady_clock::now();
       // One at a time, each fit's Jacobians on every thread.
-      for (size_t t = 0; t < todo.size(); ++t) {
-        const Row& row = screened[todo[t].first];
-        checked[todo[t].first][slot[t]] =
-            search_limit(st, L, *row.c, todo[t].second.u, todo[t].second.size, threshold(k_of(*row.c)));
+      for (const auto& [k, q] : todo) {
+        const Candidate& c = *screened[k].c;
+        checked[k][q] = search_limit(st, L, c, dirs_of[k][q].u, dirs_of[k][q].size, threshold(k_of(c)));
       }
       out.limit_check_designs = evaluations - designs_before;
       out.limit_check_wall_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t_check).count();
@@ -1180,7 +1176,7 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
       } else {
         for (size_t q = 0; q < c.params.size(); ++q) j[c.params[q].key] = row.sc.c[static_cast<Index>(q)];
       }
-      const std::vector<Direction> dirs = linear_limits(row);
+      const std::vector<Direction>& dirs = dirs_of[k];
       json lim = json::object(), lin = json::object(), checks = json::array();
       // What would absorb it: the variables' moves that take up the signature of the effect at
       // its detection limit, in units of their uncertainty, largest first (the nonlinear
