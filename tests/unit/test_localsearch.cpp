@@ -79,3 +79,54 @@ TEST_CASE("local search: a new sigma pass keeps the last pass's Jacobian, reweig
   CHECK(r.trace.back().rms_mm == Approx(r.after.rms_mm).epsilon(1e-6));
   CHECK(r.trace.back().matched == r.after.matched);
 }
+
+TEST_CASE("local search: the weak prior holds undetermined variables at its centre, the start's or the one given",
+          "[localsearch]") {
+  // ring8's own turns at RRI2 alone, with rinit moved by 3 % of its range: the turns fix rinit,
+  // and rrlshift (RRL's offset, a probe without turns here) is not determined at all. Its
+  // only residual is the weak prior's, so it ends at the prior's centre: the start when none
+  // is given (two starts, two answers), the given centre from either start (one answer).
+  TempDir tmp;
+  std::vector<double> xt;
+  const Machine truth = moved_ring8({"rinit"}, {0.03}, xt);
+  std::string csv;
+  {
+    std::string all;
+    std::FILE* f = std::fopen(turnfit::test::turns_as_peaks(truth, tmp, "all.csv").c_str(), "r");
+    REQUIRE(f != nullptr);
+    char line[256];
+    while (std::fgets(line, sizeof line, f))
+      if (csv.empty() || std::string(line).rfind("RRI2,", 0) == 0) csv += line;
+    std::fclose(f);
+  }
+  const std::string peaks = tmp.file("rri2.csv", csv);
+  auto p = load_turn_problem(tmp.file(
+      "p.json", "{\"format\": \"turnfit-problem/1\", \"machine\": \"" + ring8("machine.json") + "\", \"peaks\": \"" +
+                    peaks + "\", \"bunch\": \"reference\", \"sigma_mm\": 0.01, \"objectives\": [\"RRI2:l2\"], \"variables\": [\"rinit\", \"rrlshift\"]}"));
+  REQUIRE(p->measured().probes.size() == 1);
+  const auto& vs = p->variables();
+  const double range1 = vs[1].upper - vs[1].lower;
+  LocalSearchSettings s;
+  s.threads = 2;
+  s.minimax = false;
+  std::vector<double> a = p->start(), b = p->start();
+  a[1] += 0.2 * range1;
+  b[1] -= 0.1 * range1;
+  const LocalSearchResult ra = local_search(*p, a, s), rb = local_search(*p, b, s);
+  // Without a centre: rinit found from both starts, rrlshift left where each began.
+  CHECK(ra.x[0] == Approx(xt[0]).margin(1e-4 * (vs[0].upper - vs[0].lower)));
+  CHECK(rb.x[0] == Approx(xt[0]).margin(1e-4 * (vs[0].upper - vs[0].lower)));
+  CHECK(ra.x[1] == Approx(a[1]).margin(1e-6 * range1));
+  CHECK(rb.x[1] == Approx(b[1]).margin(1e-6 * range1));
+  // With one centre (the machine's rrlshift plus 5 % of its range; a prefix: rinit's entry only
+  // matters while its data outweigh it), both starts end at it.
+  s.weak_prior_centre = {p->start()[0], p->start()[1] + 0.05 * range1};
+  const LocalSearchResult ca = local_search(*p, a, s), cb = local_search(*p, b, s);
+  CHECK(ca.x[0] == Approx(xt[0]).margin(1e-4 * (vs[0].upper - vs[0].lower)));
+  CHECK(ca.x[1] == Approx(s.weak_prior_centre[1]).margin(1e-3 * range1));
+  CHECK(cb.x[1] == Approx(s.weak_prior_centre[1]).margin(1e-3 * range1));
+  CHECK(ca.x[0] == Approx(cb.x[0]).margin(1e-6 * (vs[0].upper - vs[0].lower)));
+  // A centre for more variables than the problem has is the caller's bug.
+  s.weak_prior_centre = {0, 0, 0};
+  CHECK(turnfit::test::error_code([&] { local_search(*p, a, s); }) == 70);
+}

@@ -75,7 +75,7 @@ struct Residuals {
   /// points, each then times inv_sigma (the stage weight alone). Null: e / sigma, point by point.
   std::unique_ptr<Whitener> white;
   std::vector<double> prior_x0, prior_sigma_x;  // problem priors (sigma > 0)
-  std::vector<double> weak_u0;     // weak prior centre (the search's start), scaled
+  std::vector<double> weak_u0;     // weak prior centre (the start, or settings.weak_prior_centre), scaled
   double weak = 1;
   double miss_mm = 10;
   unsigned threads = 1;
@@ -705,6 +705,7 @@ LocalSearchResult local_search(TurnPatternProblem& p, const std::vector<double>&
   const std::clock_t cpu0 = std::clock();
   const size_t n = p.n_variables();
   if (x0.size() != n) throw Error(ExitCode::software, "local_search: a start of the wrong size");
+  if (s.weak_prior_centre.size() > n) throw Error(ExitCode::software, "local_search: a weak prior centre of the wrong size");
   for (size_t j = 0; j < n; ++j)
     if (!(x0[j] >= p.lower()[j] && x0[j] <= p.upper()[j]))
       throw usage_error("the start's " + p.variables()[j].name + " = " + fmt(x0[j], 10) + " lies outside its bounds [" +
@@ -794,6 +795,8 @@ LocalSearchResult local_search(TurnPatternProblem& p, const std::vector<double>&
     res.prior_kind.push_back(v.sigma > 0 ? 1 : (s.weak_prior_range > 0 ? 2 : 0));
   }
   res.weak_u0 = u;
+  for (size_t j = 0; j < s.weak_prior_centre.size(); ++j)
+    res.weak_u0[j] = (s.weak_prior_centre[j] - res.lo[j]) / res.range[j];
   res.nres = nmeas;
   for (int k : res.prior_kind) res.nres += k ? 1 : 0;
   res.inv_sigma.resize(nmeas);

@@ -43,6 +43,13 @@ struct LocalSearchSettings {
   /// data do not determine then stay put instead of drifting to a bound; a determined
   /// direction's residuals outweigh it. 0: none.
   double weak_prior_range = 0.1;
+  /// The weak prior's centre for the first weak_prior_centre.size() variables (the rest: the
+  /// start). Empty: the start, so the prior holds a fit near where it began. A caller that
+  /// compares fits from different starts (turnfit-diagnose: a candidate's refit from the
+  /// linear step against the model refitted as it is) gives them one centre, so that they
+  /// minimize the same objective and differ only by the model; a fit taken on from where an
+  /// earlier one stopped passes the earlier one's centre, or each continuation would move it.
+  std::vector<double> weak_prior_centre;
   /// Outlying turns, when sigma is estimated: a turn whose converged residual lies beyond
   /// huber_k of its sigma is down-weighted as Huber's loss does (its sigma times
   /// sqrt(|z| / huber_k), z the residual in sigmas) and left out of the scatter's estimate, so
