@@ -173,6 +173,12 @@ struct DiagnoseSettings {
   /// the effect at that size is taken as the measurement, the variables are fitted to it, and
   /// the chi2 they cannot take up is compared with the threshold (a refit per size: costly).
   int limit_checks = 0;
+  /// Where the diagnosis's fits hold the weak prior (variables without a problem prior; a
+  /// tenth of a bound range): false at each fit's start, localsearch's own rule (the base fit
+  /// at --start, a refit at its candidate's linear step, a fit taken on where the last
+  /// stopped); true at the machine's values for the base fit and every fit after it, where the
+  /// linear model holds it, so that every fit minimizes one objective.
+  bool weak_prior_at_machine = false;
   bool verbose = false;
   std::function<void(const std::string&)> log;  ///< progress lines (may be empty)
 };

@@ -92,6 +92,10 @@ void add_diagnose_options(CLI::App& app, DiagnoseOptions& o) {
                  "Sizes at which each candidate's linear detection limit is checked by fitting the variables to the "
                  "base model with the effect at that size (default 0: linear limits only; each size costs two fits)")
       ->check(CLI::Range(0, 10));
+  app.add_option("--weak-prior-centre", o.weak_prior_centre,
+                 "Where the fits hold the weak prior of variables without a problem prior: start (each fit's "
+                 "start, localsearch's rule; default) or machine (the machine's values, as the linear screen does)")
+      ->check(CLI::IsMember({"start", "machine"}));
   app.add_option("--measured-at", o.measured_at,
                  "I=PEAKS[,PEAKS...]: the machine's turns measured at beam current I [uA] (repeatable; two or more "
                  "make space charge a candidate, scored on what changes with the current)")
@@ -474,6 +478,7 @@ int run_diagnose(const DiagnoseOptions& o) {
   if (o.problem == "-" && o.start == "-") throw usage_error("the problem and --start cannot both be stdin");
   DiagnoseSettings s = o.settings;
   s.types = parse_effect_types(o.effects);
+  s.weak_prior_at_machine = o.weak_prior_centre == "machine";
   s.threads = cli::resolve_threads(o.common.threads);
   if (!o.common.quiet) s.log = [](const std::string& line) { std::cerr << "turnfit-diagnose: " << line << "\n"; };
 
