@@ -650,3 +650,46 @@ TEST_CASE("diagnose path: a curved signature's sampled path is minimized, interp
   CHECK(sides[0] == Approx(std::sqrt(T) / a.norm()).epsilon(1e-9));
   CHECK(std::isnan(sides[1]));
 }
+
+TEST_CASE("diagnose: --weak-prior-centre machine holds undetermined variables at the machine's values in every fit",
+          "[diagnose]") {
+  // ring8's own turns at RRI2 alone (rinit moved by 2 % of its range): rrlshift, RRL's offset,
+  // moves no measured turn, so only the weak prior places it. From a start with rrlshift moved
+  // by a fifth of its range, the base fit leaves it there by default (localsearch's centre, the
+  // start) and takes it to the machine's value with the machine's centre; rinit is the turns'.
+  TempDir tmp;
+  std::vector<double> xt;
+  const Machine truth = moved_ring8({"rinit"}, {0.02}, xt);
+  std::string csv;
+  {
+    std::FILE* f = std::fopen(turns_as_peaks(truth, tmp, "all.csv").c_str(), "r");
+    REQUIRE(f != nullptr);
+    char line[256];
+    while (std::fgets(line, sizeof line, f))
+      if (csv.empty() || std::string(line).rfind("RRI2,", 0) == 0) csv += line;
+    std::fclose(f);
+  }
+  const std::string peaks = tmp.file("rri2.csv", csv);
+  auto p = load_turn_problem(tmp.file(
+      "p.json", "{\"format\": \"turnfit-problem/1\", \"machine\": \"" + ring8("machine.json") + "\", \"peaks\": \"" +
+                    peaks + "\", \"bunch\": \"reference\", \"objectives\": [\"RRI2:l2\"], \"variables\": [\"rinit\", \"rrlshift\"]}"));
+  const auto& vs = p->variables();
+  const double range1 = vs[1].upper - vs[1].lower;
+  std::vector<double> x0 = p->start();
+  x0[0] = xt[0];
+  x0[1] += 0.2 * range1;
+  DiagnoseSettings s;
+  s.threads = 2;
+  s.types = {"voltage-tilt"};
+  s.max_effects = 1;
+  const Diagnosis at_start = diagnose(*p, x0, s);
+  s.weak_prior_at_machine = true;
+  const Diagnosis at_machine = diagnose(*p, x0, s);
+  const double tol0 = 1e-4 * (vs[0].upper - vs[0].lower);
+  CHECK(at_start.x_base[0] == Approx(xt[0]).margin(tol0));
+  CHECK(at_machine.x_base[0] == Approx(xt[0]).margin(tol0));
+  CHECK(at_start.x_base[1] == Approx(x0[1]).margin(1e-3 * range1));
+  CHECK(at_machine.x_base[1] == Approx(p->start()[1]).margin(1e-3 * range1));
+  CHECK(at_start.verdict == "nothing-missing");
+  CHECK(at_machine.verdict == "nothing-missing");
+}
