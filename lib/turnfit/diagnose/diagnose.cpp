@@ -663,6 +663,8 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
       // signatures of hundreds of thousands in chi2, along directions the data hardly fix, and
       // fits from the two starts ended 1.2 to 5.5 times apart in what they left on the shipped
       // measurement's gap bows and tilts: the lower is the nearer to what the variables can do.
+      // (Distinct local minima: with one weak-prior centre for both the gap stays for two of
+      // five tilts, and a fit taken on from where either ended does not move; RESULTS.md.)
       std::vector<double> x1 = S.x;
       for (Index j = 0; j < n; ++j) {
         const auto& v = vars[static_cast<size_t>(j)];
