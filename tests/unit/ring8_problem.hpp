@@ -37,8 +37,10 @@ inline Machine moved_ring8(const std::vector<std::string>& names, const std::vec
   return m;
 }
 
-/// A machine's own turns as a peaks file (17 digits, so a problem at the machine matches exactly).
-inline std::string turns_as_peaks(const Machine& m, const TempDir& tmp, const std::string& name) {
+/// A machine's own turns as a peaks file (17 digits, so a problem at the machine matches exactly);
+/// with `only_probe`, that probe's turns alone.
+inline std::string turns_as_peaks(const Machine& m, const TempDir& tmp, const std::string& name,
+                                  const std::string& only_probe = "") {
   const TrackModel model = make_track_model(m);
   std::vector<TurnRecord> turns;
   track_particle(model, injection_state(effective_injection(m), m.particle.mass_MeV), machine_track_settings(m),
@@ -46,8 +48,9 @@ inline std::string turns_as_peaks(const Machine& m, const TempDir& tmp, const st
   std::string csv = "probe,turn,r_mm,height,area,width_mm,flag\n";
   char buf[160];
   for (const auto& t : turns) {
-    std::snprintf(buf, sizeof buf, "%s,%d,%.17g,1,1,1,ok\n", model.probes[static_cast<size_t>(t.probe)].name.c_str(),
-                  t.turn, t.r_mm);
+    const std::string& probe = model.probes[static_cast<size_t>(t.probe)].name;
+    if (!only_probe.empty() && probe != only_probe) continue;
+    std::snprintf(buf, sizeof buf, "%s,%d,%.17g,1,1,1,ok\n", probe.c_str(), t.turn, t.r_mm);
     csv += buf;
   }
   return tmp.file(name, csv);

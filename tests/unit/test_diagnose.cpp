@@ -660,16 +660,7 @@ TEST_CASE("diagnose: --weak-prior-centre machine holds undetermined variables at
   TempDir tmp;
   std::vector<double> xt;
   const Machine truth = moved_ring8({"rinit"}, {0.02}, xt);
-  std::string csv;
-  {
-    std::FILE* f = std::fopen(turns_as_peaks(truth, tmp, "all.csv").c_str(), "r");
-    REQUIRE(f != nullptr);
-    char line[256];
-    while (std::fgets(line, sizeof line, f))
-      if (csv.empty() || std::string(line).rfind("RRI2,", 0) == 0) csv += line;
-    std::fclose(f);
-  }
-  const std::string peaks = tmp.file("rri2.csv", csv);
+  const std::string peaks = turns_as_peaks(truth, tmp, "rri2.csv", "RRI2");
   auto p = load_turn_problem(tmp.file(
       "p.json", "{\"format\": \"turnfit-problem/1\", \"machine\": \"" + ring8("machine.json") + "\", \"peaks\": \"" +
                     peaks + "\", \"bunch\": \"reference\", \"objectives\": [\"RRI2:l2\"], \"variables\": [\"rinit\", \"rrlshift\"]}"));
