@@ -683,4 +683,6 @@ TEST_CASE("diagnose: --weak-prior-centre machine holds undetermined variables at
   CHECK(at_machine.x_base[1] == Approx(p->start()[1]).margin(1e-3 * range1));
   CHECK(at_start.verdict == "nothing-missing");
   CHECK(at_machine.verdict == "nothing-missing");
+  CHECK(!at_start.weak_prior_at_machine);  // the report's weak_prior_centre
+  CHECK(at_machine.weak_prior_at_machine);
 }

@@ -432,6 +432,7 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
   // gains compared), and the base fit's variables, which have moved to take up what the model
   // lacks, hold a refit near them. Not the default yet: bench/RESULTS.md, "The weak prior's
   // centre". (The first fit from the machine's values starts there either way.)
+  out.weak_prior_at_machine = s.weak_prior_at_machine;
   if (s.weak_prior_at_machine) {
     fs.weak_prior_centre = p.start();
     rs.weak_prior_centre = p.start();

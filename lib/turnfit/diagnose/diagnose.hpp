@@ -258,6 +258,7 @@ struct Diagnosis {
   /// Designs and wall time of round 1's nonlinear checks of the detection limits.
   size_t limit_check_designs = 0;
   double limit_check_wall_s = 0;
+  bool weak_prior_at_machine = false;  ///< the setting the fits ran with (DiagnoseSettings)
 };
 
 /// Diagnoses problem p from design x0: base fit, noise, locate, screen every candidate in the

@@ -203,6 +203,7 @@ json diagnosis_report(const TurnPatternProblem& p, const Diagnosis& d, const std
   j["evaluations"] = d.evaluations;
   j["wall_s"] = d.wall_s;
   j["limit_checks"] = {{"evaluations", d.limit_check_designs}, {"wall_s", d.limit_check_wall_s}};
+  j["weak_prior_centre"] = d.weak_prior_at_machine ? "machine" : "start";
   return j;
 }
 
