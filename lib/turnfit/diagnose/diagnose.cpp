@@ -258,6 +258,18 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
   LocalSearchSettings fs = s.fit;
   fs.threads = threads;
   fs.minimax = false;
+  // With weak_prior_at_machine, the base fit and every fit after it hold the weak prior
+  // (variables without a problem prior) at the machine's values, where the linear model holds
+  // it, instead of where each fit starts (localsearch's rule): the base fit from --start, a
+  // refit from its candidate's linear step, a fit taken on from where one stopped. With the
+  // prior at each start they minimize different objectives (on the shipped measurement the
+  // weak prior between the base fit and the final model is worth 67 in chi2, the order of the
+  // gains compared), and the base fit's variables, which have moved to take up what the model
+  // lacks, hold a refit near them. Not the default yet: bench/RESULTS.md, "The weak prior's
+  // centre". (The first fit from the machine's values starts there either way.) The refits'
+  // settings below are copies of these.
+  out.weak_prior_at_machine = s.weak_prior_at_machine;
+  if (s.weak_prior_at_machine) fs.weak_prior_centre = p.start();
   auto residual = [&](const TurnPatternProblem& q, const std::vector<double>& x, std::vector<unsigned char>& matched) {
     const TurnPatternResult r = q.simulate(x);
     if (!r.ok) throw Error(ExitCode::data, "diagnose: a fitted design cannot be simulated: " + r.reason);
@@ -423,21 +435,6 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
   auto refit_as_is = [&](const State& S, bool follow, State& w, LocalSearchResult& r) {
     refit_model(S.prob->machine(), S.prob->variables(), S.x, S.n_problem, follow, w, r);
   };
-  // With weak_prior_at_machine, the base fit and every fit after it hold the weak prior
-  // (variables without a problem prior) at the machine's values, where the linear model holds
-  // it, instead of where each fit starts (localsearch's rule): the base fit from --start, a
-  // refit from its candidate's linear step, a fit taken on from where one stopped. With the
-  // prior at each start they minimize different objectives (on the shipped measurement the
-  // weak prior between the base fit and the final model is worth 67 in chi2, the order of the
-  // gains compared), and the base fit's variables, which have moved to take up what the model
-  // lacks, hold a refit near them. Not the default yet: bench/RESULTS.md, "The weak prior's
-  // centre". (The first fit from the machine's values starts there either way.)
-  out.weak_prior_at_machine = s.weak_prior_at_machine;
-  if (s.weak_prior_at_machine) {
-    fs.weak_prior_centre = p.start();
-    rs.weak_prior_centre = p.start();
-    ps.weak_prior_centre = p.start();
-  }
   log("base fit of " + std::to_string(p.variables().size()) + " design variables with that noise");
   out.base_fit = local_search(*st.prob, x_start, fs);
   evaluations += out.base_fit.evaluations;
