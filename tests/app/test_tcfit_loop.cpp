@@ -183,7 +183,7 @@ TEST_CASE("tc-fit closes the loop on ring8: at the truth's design variables the 
 
 TEST_CASE("tc-fit closes the loop on ring8: per-coil shapes and strengths, nominal and at the truth's design "
           "variables (regression)",
-          "[tcfit][loop][regression]") {
+          "[tcfit][loop][regression][heavy]") {
   // Values from this loop's own output (lib/ of this commit; TC3-TC17, --degrees 2/4, noiseless
   // scans), not an independent reference: no page documents per-coil shape errors, the tracked
   // model's strengths on noiseless scans of the truth at 2/4, or the nominal model (the first

@@ -400,7 +400,7 @@ TEST_CASE("diagnose limits: each linear detection limit is checked by fits of th
 }
 
 TEST_CASE("diagnose: look-alike sectors are refitted beside the strongest, so the screen's order does not decide alone",
-          "[diagnose]") {
+          "[diagnose][heavy]") {
   TempDir tmp;
   // Sector 5 stronger by 3e-4 under moved rinit and vchange: every sector's signature is
   // mostly the same mean field, so several screen near the top.
@@ -487,7 +487,7 @@ TEST_CASE("diagnose: look-alike sectors are refitted beside the strongest, so th
 }
 
 TEST_CASE("diagnose: each fitted model has its own bunch centre, so a large effect's refit reaches the floor",
-          "[diagnose]") {
+          "[diagnose][heavy]") {
   TempDir tmp;
   // A 12 % tilt of main1's voltage under moved rinit and vchange. The measurement is the
   // truth's bunch centre: its reference particle's turns plus its own centroid shift (up to
@@ -539,7 +539,8 @@ TEST_CASE("diagnose: each fitted model has its own bunch centre, so a large effe
   CHECK(d.after.linf_mm < 1e-4);
 }
 
-TEST_CASE("diagnose: a gap bow the variables absorb is screened along its valley and named at its size", "[diagnose]") {
+TEST_CASE("diagnose: a gap bow the variables absorb is screened along its valley and named at its size",
+          "[diagnose][heavy]") {
   TempDir tmp;
   // A 100 mm bow of main1 under moved rinit and vchange, fitted with main1's phase and
   // position free: they take up most of the bow's tangent signature (a shift of the gap).
