@@ -12,11 +12,8 @@
 //     ...)), and the group's records against each design's alone (bit for bit).
 //  With --breakdown, between 1 and 2: what each of the truth's field effects costs a single
 //  track (the truth without it, the variants interleaved run by run).
-//  With --fold, section 4 alone: each machine's static field folded into one map
-//  (fold_static_field, radial refinements 1, 2 and 4): the fold's own time, a single track and
-//  a bunch against the exact field's in the same run, and the largest difference of a crossing.
 //
-// Usage: bench_speed [--repeat N] [--particles N] [--breakdown] [--designs-only] [--fold]
+// Usage: bench_speed [--repeat N] [--particles N] [--breakdown] [--designs-only]
 // (--designs-only: section 3 alone.)
 #include <algorithm>
 #include <chrono>
@@ -66,15 +63,14 @@ struct Case {
 int main(int argc, char** argv) {
   int repeat = 15;
   size_t particles = 64;
-  bool breakdown = false, only_designs = false, fold = false;
+  bool breakdown = false, only_designs = false;
   for (int i = 1; i < argc; ++i) {
     if (!std::strcmp(argv[i], "--repeat") && i + 1 < argc) repeat = std::max(1, std::atoi(argv[++i]));
     else if (!std::strcmp(argv[i], "--particles") && i + 1 < argc) particles = std::max(1, std::atoi(argv[++i]));
     else if (!std::strcmp(argv[i], "--breakdown")) breakdown = true;
     else if (!std::strcmp(argv[i], "--designs-only")) only_designs = true;
-    else if (!std::strcmp(argv[i], "--fold")) fold = true;
     else {
-      std::fprintf(stderr, "usage: bench_speed [--repeat N] [--particles N] [--breakdown] [--designs-only] [--fold]\n");
+      std::fprintf(stderr, "usage: bench_speed [--repeat N] [--particles N] [--breakdown] [--designs-only]\n");
       return 64;
     }
   }
@@ -103,78 +99,6 @@ int main(int argc, char** argv) {
     L.ts = machine_track_settings(L.m);
     L.ts.turns = 182;
     loaded.push_back(std::move(L));
-  }
-
-  if (fold) {  // section 4 alone
-    std::printf("== Static field folded into one map (fold_static_field), 182 turns, one thread, median of %d\n", repeat);
-    std::printf("%-14s %6s %10s %12s %12s %8s %14s %12s %12s %8s %14s\n", "machine", "refine", "fold [ms]",
-                "exact [ms]", "folded [ms]", "ratio", "max |dr| [mm]", "exact pt/s", "folded pt/s", "ratio",
-                "bunch |dr| [mm]");
-    for (size_t c = 0; c < loaded.size(); ++c) {
-      Loaded& L = loaded[c];
-      Bunch bb = L.m.bunch ? *L.m.bunch : Bunch{};
-      if (!L.m.bunch) {
-        bb.emittance_r_mm_mrad = 1;
-        bb.beta_r_m = 2;
-        bb.sigma_E_MeV = 0.05;
-        bb.sigma_phase_deg = 1;
-      }
-      const Injection inj = effective_injection(L.m);
-      std::vector<ParticleState> starts;
-      for (const auto& o : gaussian_bunch(bb, particles, 1))
-        starts.push_back(offset_state(inj, L.m.particle.mass_MeV, L.model.rf_MHz, o));
-      for (int refine : {1, 2, 4}) {
-        std::vector<double> t_fold, t_exact, t_folded;
-        TrackModel f;
-        for (int k = 0; k < std::min(repeat, 3); ++k) {
-          const auto t0 = Clock::now();
-          f = fold_static_field(L.model, refine);
-          t_fold.push_back(seconds_since(t0) * 1e3);
-        }
-        std::vector<TurnRecord> a, b;
-        track_particle(f, L.s0, L.ts, b);  // the row table built once, outside the timing
-        for (int k = 0; k < repeat; ++k) {
-          a.clear();
-          auto t0 = Clock::now();
-          track_particle(L.model, L.s0, L.ts, a);
-          t_exact.push_back(seconds_since(t0) * 1e3);
-          b.clear();
-          t0 = Clock::now();
-          track_particle(f, L.s0, L.ts, b);
-          t_folded.push_back(seconds_since(t0) * 1e3);
-        }
-        std::vector<std::vector<TurnRecord>> te(particles), tf(particles);
-        std::vector<TrackEnd> ee(particles), ef(particles);
-        auto t0 = Clock::now();
-        track_particles(L.model, starts.data(), particles, L.ts, te.data(), ee.data());
-        const double s_exact = seconds_since(t0);
-        t0 = Clock::now();
-        track_particles(f, starts.data(), particles, L.ts, tf.data(), ef.data());
-        const double s_folded = seconds_since(t0);
-        double pe = 0, pf = 0, worst = 0;
-        for (size_t i = 0; i < particles; ++i) {
-          pe += ee[i].turns;
-          pf += ef[i].turns;
-          worst = std::max(worst, worst_dr(te[i], tf[i]));
-        }
-        // Both against the exact field at a ninth of a cell per step (the integration's own error
-        // at the default step, where the field has edges inside a step, is the fold's scale).
-        if (refine == 1) {
-          TrackSettings fine = L.ts;
-          fine.step_deg = L.model.map.grid().dtheta_rad() * 180 / 3.14159265358979323846 / 9 * 1.0000001;
-          std::vector<TurnRecord> r, rf;
-          track_particle(L.model, L.s0, fine, r);
-          track_particle(f, L.s0, fine, rf);
-          std::printf("%-14s  exact at 1/9 cell per step: exact default %.2e mm off, folded default %.2e, "
-                      "folded at 1/9 cell %.2e\n", cases[c].name.c_str(), worst_dr(a, r), worst_dr(b, r), worst_dr(rf, r));
-        }
-        std::printf("%-14s %6d %10.1f %12.2f %12.2f %7.2fx %14.2e %12.0f %12.0f %7.2fx %14.2e\n",
-                    cases[c].name.c_str(), refine, median(t_fold), median(t_exact), median(t_folded),
-                    median(t_exact) / median(t_folded), worst_dr(a, b), pe / s_exact, pf / s_folded,
-                    (pf / s_folded) / (pe / s_exact), worst);
-      }
-    }
-    return 0;
   }
 
   if (!only_designs) {  // sections 1 and 2 (and the breakdown)

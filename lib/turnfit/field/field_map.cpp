@@ -78,11 +78,6 @@ void check_grid_size(long nr, long ntheta, const std::string& file, long line) {
 
 PolarFieldMap::PolarFieldMap(const PolarGrid& grid, std::vector<double> bz_T, std::string label)
     : grid_(grid), bz_(std::make_shared<const std::vector<double>>(std::move(bz_T))), label_(std::move(label)) {
-  check_grid();
-  build();
-}
-
-void PolarFieldMap::check_grid() const {
   if (grid_.nr < 2 || grid_.ntheta < 1 || grid_.symmetry < 1 || !(grid_.dr_mm > 0) ||
       !(grid_.r_min_mm >= 0) || !std::isfinite(grid_.theta_min_deg))
     throw Error(ExitCode::data, "field map: invalid grid (need nr >= 2, ntheta >= 1, dr > 0, "
@@ -107,6 +102,7 @@ void PolarFieldMap::check_grid() const {
   for (size_t k = 0; k < bz_->size(); ++k)
     if (!std::isfinite((*bz_)[k]))
       throw Error(ExitCode::data, "field map: value " + std::to_string(k) + " is not finite");
+  build();
 }
 
 void PolarFieldMap::build() {
@@ -124,35 +120,18 @@ void PolarFieldMap::build() {
   Eigen::MatrixXd Fv = periodic_slopes(F.transpose()).transpose();   // d/dv
   Eigen::MatrixXd Fuv = periodic_slopes(Fu.transpose()).transpose(); // d2/dudv
 
-  const size_t n = static_cast<size_t>(nr) * nt;
-  std::vector<double> f(n), fu(n), fv(n), fuv(n);
-  for (int i = 0; i < nr; ++i)
-    for (int j = 0; j < nt; ++j) {
-      const size_t k = static_cast<size_t>(i) * nt + j;
-      f[k] = F(i, j);
-      fu[k] = Fu(i, j);
-      fv[k] = Fv(i, j);
-      fuv[k] = Fuv(i, j);
-    }
-  build_patches(f, fu, fv, fuv);
-}
-
-void PolarFieldMap::build_patches(const std::vector<double>& F, const std::vector<double>& Fu,
-                                  const std::vector<double>& Fv, const std::vector<double>& Fuv) {
-  const int nr = grid_.nr, nt = grid_.ntheta;
   // Hermite basis: p(t) = [1 t t^2 t^3] H [p0 p1 p0' p1']^T.
   Eigen::Matrix4d H;
   H << 1, 0, 0, 0, 0, 0, 1, 0, -3, 3, -2, -1, 2, -2, 1, 1;
-  const auto at = [nt](const std::vector<double>& a, int i, int j) { return a[static_cast<size_t>(i) * nt + j]; };
   auto coef = std::make_shared<std::vector<std::array<double, 16>>>(static_cast<size_t>(nr - 1) * nt);
   for (int i = 0; i < nr - 1; ++i) {
     for (int j = 0; j < nt; ++j) {
       const int j1 = (j + 1) % nt;
       Eigen::Matrix4d G;
-      G << at(F, i, j), at(F, i, j1), at(Fv, i, j), at(Fv, i, j1),                  //
-          at(F, i + 1, j), at(F, i + 1, j1), at(Fv, i + 1, j), at(Fv, i + 1, j1),  //
-          at(Fu, i, j), at(Fu, i, j1), at(Fuv, i, j), at(Fuv, i, j1),              //
-          at(Fu, i + 1, j), at(Fu, i + 1, j1), at(Fuv, i + 1, j), at(Fuv, i + 1, j1);
+      G << F(i, j), F(i, j1), Fv(i, j), Fv(i, j1),          //
+          F(i + 1, j), F(i + 1, j1), Fv(i + 1, j), Fv(i + 1, j1),  //
+          Fu(i, j), Fu(i, j1), Fuv(i, j), Fuv(i, j1),        //
+          Fu(i + 1, j), Fu(i + 1, j1), Fuv(i + 1, j), Fuv(i + 1, j1);
       Eigen::Matrix4d A = H * G * H.transpose();
       auto& c = (*coef)[static_cast<size_t>(i) * nt + j];
       for (int k = 0; k < 4; ++k)
@@ -204,54 +183,6 @@ bool PolarFieldMap::sample(double r_m, double theta_rad, FieldSample& out) const
   double row[4], drow[4];
   patch_rows(patch_[static_cast<size_t>(i) * grid_.ntheta + j], v, row, drow);
   from_rows(row, drow, u, out);
-  return true;
-}
-
-PolarFieldMap PolarFieldMap::from_hermite(const PolarGrid& grid, std::vector<double> bz_T,
-                                         const std::vector<double>& dbz_dr, const std::vector<double>& dbz_dth,
-                                         const std::vector<double>& d2bz_drdth, std::string label) {
-  PolarFieldMap m;
-  m.grid_ = grid;
-  m.label_ = std::move(label);
-  const size_t n = bz_T.size();
-  m.bz_ = std::make_shared<const std::vector<double>>(std::move(bz_T));
-  m.check_grid();
-  if (dbz_dr.size() != n || dbz_dth.size() != n || d2bz_drdth.size() != n)
-    throw Error(ExitCode::data, "field map: node slopes of another size than the values");
-  for (size_t k = 0; k < n; ++k)
-    if (!std::isfinite(dbz_dr[k]) || !std::isfinite(dbz_dth[k]) || !std::isfinite(d2bz_drdth[k]))
-      throw Error(ExitCode::data, "field map: node slope " + std::to_string(k) + " is not finite");
-  m.r_min_ = grid.r_min_m();
-  m.r_max_ = grid.r_max_m();
-  m.theta_min_ = grid.theta_min_rad();
-  m.inv_dr_ = 1.0 / grid.dr_m();
-  m.inv_dth_ = 1.0 / grid.dtheta_rad();
-  // Slopes in cell units: the patches live on the unit square.
-  const double du = grid.dr_m(), dv = grid.dtheta_rad();
-  std::vector<double> fu(n), fv(n), fuv(n);
-  for (size_t k = 0; k < n; ++k) {
-    fu[k] = dbz_dr[k] * du;
-    fv[k] = dbz_dth[k] * dv;
-    fuv[k] = d2bz_drdth[k] * (du * dv);
-  }
-  m.build_patches(*m.bz_, fu, fv, fuv);
-  return m;
-}
-
-bool PolarFieldMap::sample_cross(double r_m, double theta_rad, FieldSample& out, double& d2) const {
-  if (!(r_m >= r_min_ && r_m <= r_max_)) return false;
-  double u;
-  const int i = radial_cell(r_m, u);
-  double y = (theta_rad - theta_min_) * inv_dth_;
-  const double nt = grid_.ntheta;
-  if (y < 0 || y >= nt) y -= nt * std::floor(y / nt);
-  int j = static_cast<int>(y);
-  if (j >= grid_.ntheta) j = grid_.ntheta - 1;
-  const double v = y - j;
-  double row[4], drow[4];
-  patch_rows(patch_[static_cast<size_t>(i) * grid_.ntheta + j], v, row, drow);
-  from_rows(row, drow, u, out);
-  d2 = ((3 * drow[3] * u + 2 * drow[2]) * u + drow[1]) * inv_dr_ * inv_dth_;
   return true;
 }
 

@@ -77,19 +77,8 @@ class PolarFieldMap {
   /// Throws EX_DATAERR if the grid is inconsistent or a value is not finite.
   PolarFieldMap(const PolarGrid& grid, std::vector<double> bz_T, std::string label = {});
 
-  /// A map whose patches are the bicubic Hermite patches of given node data instead of the
-  /// spline through the values: at node (i, j) (radius-major, as bz_T) the value [T], dBz/dr
-  /// [T/m], dBz/dtheta [T/rad] and d2Bz/dr dtheta [T/(m rad)]. Patches interpolate every
-  /// node's four numbers, so a bicubic function (another map's patch on a finer grid of its
-  /// cells) is reproduced exactly. EX_DATAERR as the constructor's, and for data of another size.
-  static PolarFieldMap from_hermite(const PolarGrid& grid, std::vector<double> bz_T, const std::vector<double>& dbz_dr,
-                                    const std::vector<double>& dbz_dth, const std::vector<double>& d2bz_drdth,
-                                    std::string label);
-
   /// Interpolated field at (r, theta); false (out untouched) outside the radial range.
   bool sample(double r_m, double theta_rad, FieldSample& out) const;
-  /// sample() with the cross derivative d2Bz/dr dtheta [T/(m rad)] as well.
-  bool sample_cross(double r_m, double theta_rad, FieldSample& out, double& d2bz_drdth) const;
   /// Bz only (NaN outside the map), for tables and plots.
   double bz(double r_m, double theta_rad) const;
   /// Whether r lies inside the map's radial range.
@@ -147,11 +136,7 @@ class PolarFieldMap {
   double average_at(double r_m) const;
 
  private:
-  void check_grid() const;
   void build();
-  /// The patches from node values and slopes in cell units (u, v: per cell), radius-major.
-  void build_patches(const std::vector<double>& F, const std::vector<double>& Fu, const std::vector<double>& Fv,
-                     const std::vector<double>& Fuv);
   // sample()'s parts, shared with the row tables so that both give the same numbers.
   /// The radial cell of r (inside the map) and the position u in it.
   int radial_cell(double r_m, double& u) const {

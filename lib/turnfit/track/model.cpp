@@ -519,65 +519,6 @@ ModelFiles read_model_files(const Machine& m) {
   return f;
 }
 
-TrackModel fold_static_field(const TrackModel& m, int radial_refine) {
-  if (m.opal_map) throw Error(ExitCode::software, "fold_static_field: an OPAL-compatible model has no spline map");
-  if (radial_refine < 1 || radial_refine > 16)
-    throw Error(ExitCode::software, "fold_static_field: radial_refine " + std::to_string(radial_refine) +
-                                        " outside 1..16");
-  const PolarGrid& g = m.map.grid();
-  PolarGrid f = g;
-  f.dr_mm = g.dr_mm / radial_refine;
-  f.nr = (g.nr - 1) * radial_refine + 1;
-  f.ntheta = g.ntheta * g.symmetry;
-  f.symmetry = 1;
-  check_grid_size(f.nr, f.ntheta, "fold_static_field");
-  const size_t n = static_cast<size_t>(f.nr) * f.ntheta;
-  std::vector<double> b(n), b_r(n), b_th(n), b_rth(n);
-  const bool extra = !m.main_field_only();
-  const double dth = f.dtheta_rad(), r0 = g.r_min_m(), r1 = g.r_max_m();
-  // The step of the cross slope's difference [m]: small against any radial scale of a coil or
-  // effect, large against rounding of dBz/dtheta (~1e-16 relative).
-  const double e = 1e-5 * g.dr_m();
-  // What the effects and coils add to dBz/dtheta at (r, th).
-  const auto extra_dth = [&](double r, double th) {
-    FieldSample s, t;
-    if (!m.map.sample(r, th, s)) throw Error(ExitCode::software, "fold_static_field: a node outside the map");
-    t = s;
-    m.add_to_main(r, th, t);
-    return t.dbz_dth_T - s.dbz_dth_T;
-  };
-  for (int i = 0; i < f.nr; ++i) {
-    // The node's radius from the original grid's cell and the split (the last exactly r_max).
-    const int ci = i / radial_refine, sub = i % radial_refine;
-    const double r = i == f.nr - 1 ? r1 : r0 + ci * g.dr_m() + sub * (g.dr_m() / radial_refine);
-    for (int j = 0; j < f.ntheta; ++j) {
-      const double th = f.theta_min_rad() + j * dth;
-      FieldSample s;
-      double cross = 0;
-      if (!m.map.sample_cross(r, th, s, cross)) throw Error(ExitCode::software, "fold_static_field: a node outside the map");
-      const size_t k = static_cast<size_t>(i) * f.ntheta + j;
-      if (extra) {
-        FieldSample t = s;
-        m.add_to_main(r, th, t);
-        const double lo = std::max(r0, r - e), hi = std::min(r1, r + e);
-        cross += (extra_dth(hi, th) - extra_dth(lo, th)) / (hi - lo);
-        s = t;
-      }
-      b[k] = s.bz_T;
-      b_r[k] = s.dbz_dr_T_m;
-      b_th[k] = s.dbz_dth_T;
-      b_rth[k] = cross;
-    }
-  }
-  TrackModel out = m;
-  out.map = PolarFieldMap::from_hermite(f, std::move(b), b_r, b_th, b_rth, m.map.label() + " (folded: effects and trim coils)");
-  out.coils.clear();
-  out.sum_coils();
-  out.effects = FieldEffects{};
-  out.sector_windows = false;
-  return out;
-}
-
 TrackModel make_track_model(const Machine& m, const ModelOptions& opt, const ModelFiles* files) {
   TrackModel t;
   const bool files_map = files && same_main_field(*files, m);

@@ -271,20 +271,6 @@ TrackModel make_track_model(const Machine& m, const ModelOptions& opt = {}, cons
 void apply_effects(TrackModel& t, const Effects& fx, const std::string& file = "<machine>",
                    const ModelOptions& opt = {});
 
-/// The model with its static field folded into one map: the main field, the field effects and
-/// the trim coils sampled at the nodes of a full-turn grid (symmetry 1, the map's azimuths, its
-/// radial cells split `radial_refine` times), with exact values and slopes and the cross slope
-/// (the main field's from its patch, the rest's by a central difference), and interpolated by
-/// bicubic Hermite patches. The main field's part is the map's own patches again (to
-/// rounding); what the effects and coils add is interpolated, with an error that falls as
-/// radial_refine^-4 where they are smooth (a coil's threshold fade and a sector window's edge are
-/// not, and set what is left). The result has no coils and no field effects, so a track samples
-/// one table instead of the coil tables and effects at every step: for many particles of one
-/// fixed machine (a bunch, synth's measurement), not for a design an optimizer changes.
-/// Gaps, probes and everything else are the model's. EX_SOFTWARE for an OPAL-compatible model
-/// (its bilinear map is not a spline) or radial_refine outside 1..16.
-TrackModel fold_static_field(const TrackModel& m, int radial_refine = 1);
-
 /// The effects an OPAL-cycl 2022.1 input cannot state as element parameters, one line each
 /// ("gap-bow (/effects/2): ..." saying what OPAL would need), in the order of the `effects`
 /// array. probe-offset, injection-offset and trimcoil-sectors map onto PROBE, RINIT/PRINIT/
