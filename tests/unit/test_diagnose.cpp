@@ -656,8 +656,8 @@ TEST_CASE("diagnose: --weak-prior-centre machine holds undetermined variables at
           "[diagnose]") {
   // ring8's own turns at RRI2 alone (rinit moved by 2 % of its range): rrlshift, RRL's offset,
   // moves no measured turn, so only the weak prior places it. From a start with rrlshift moved
-  // by a fifth of its range, the base fit leaves it there by default (localsearch's centre, the
-  // start) and takes it to the machine's value with the machine's centre; rinit is the turns'.
+  // by a fifth of its range, the base fit leaves it there with localsearch's centre, the start,
+  // and takes it to the machine's value with the machine's centre (the default); rinit is the turns'.
   TempDir tmp;
   std::vector<double> xt;
   const Machine truth = moved_ring8({"rinit"}, {0.02}, xt);
@@ -674,9 +674,10 @@ TEST_CASE("diagnose: --weak-prior-centre machine holds undetermined variables at
   s.threads = 2;
   s.types = {"voltage-tilt"};
   s.max_effects = 1;
-  const Diagnosis at_start = diagnose(*p, x0, s);
-  s.weak_prior_at_machine = true;
+  CHECK(s.weak_prior_at_machine);  // the default
   const Diagnosis at_machine = diagnose(*p, x0, s);
+  s.weak_prior_at_machine = false;
+  const Diagnosis at_start = diagnose(*p, x0, s);
   const double tol0 = 1e-4 * (vs[0].upper - vs[0].lower);
   CHECK(at_start.x_base[0] == Approx(xt[0]).margin(tol0));
   CHECK(at_machine.x_base[0] == Approx(xt[0]).margin(tol0));

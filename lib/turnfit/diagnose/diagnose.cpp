@@ -265,9 +265,9 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
   // prior at each start they minimize different objectives (on the shipped measurement the
   // weak prior between the base fit and the final model is worth 67 in chi2, the order of the
   // gains compared), and the base fit's variables, which have moved to take up what the model
-  // lacks, hold a refit near them. Not the default yet: bench/RESULTS.md, "The weak prior's
-  // centre". (The first fit from the machine's values starts there either way.) The refits'
-  // settings below are copies of these.
+  // lacks, hold a refit near them. The default since 2026-11-30, on paired blind runs:
+  // bench/RESULTS.md, "The weak prior's centre". (The first fit from the machine's values starts
+  // there either way.) The refits' settings below are copies of these.
   out.weak_prior_at_machine = s.weak_prior_at_machine;
   if (s.weak_prior_at_machine) fs.weak_prior_centre = p.start();
   auto residual = [&](const TurnPatternProblem& q, const std::vector<double>& x, std::vector<unsigned char>& matched) {
@@ -338,9 +338,11 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
     held->set_scan_noise(st.prob->scan_noise());
     return held;
   };
-  // With the noise fixed, converged means the Gauss-Newton step promises less than 0.05 in
-  // absolute chi2, not in units of the current chi2 per degree of freedom (localsearch's test,
-  // made for a sigma it scales to chi2/dof 1). And the base fit keeps localsearch's turn
+  // With the noise fixed, localsearch's convergence test (the Gauss-Newton step's promise in
+  // units of the current chi2 per degree of freedom, made for a sigma it scales to chi2/dof 1)
+  // is off: the fits run to Ceres' function tolerance. The same test in absolute chi2 (0.05)
+  // stopped the shipped measurement's base fit 16 in chi2 short on a curved valley and left the
+  // whole diagnosis worse (bench/RESULTS.md, 2026-11-30). And the base fit keeps localsearch's turn
   // continuation: with priors and a missing effect, one all-turn pass from the first fit
   // stopped after 9 iterations at chi2/dof 87 with the noise's sigma, and the refits took
   // the rest of its descent (13950 in chi2 for any candidate), where a fit by stages reached

@@ -93,8 +93,8 @@ void add_diagnose_options(CLI::App& app, DiagnoseOptions& o) {
                  "base model with the effect at that size (default 0: linear limits only; each size costs two fits)")
       ->check(CLI::Range(0, 10));
   app.add_option("--weak-prior-centre", o.weak_prior_centre,
-                 "Where the fits hold the weak prior of variables without a problem prior: start (each fit's "
-                 "start, localsearch's rule; default) or machine (the machine's values, as the linear screen does)")
+                 "Where the fits hold the weak prior of variables without a problem prior: machine (the machine's "
+                 "values, as the linear screen does; default) or start (each fit's start, localsearch's rule)")
       ->check(CLI::IsMember({"start", "machine"}));
   app.add_option("--measured-at", o.measured_at,
                  "I=PEAKS[,PEAKS...]: the machine's turns measured at beam current I [uA] (repeatable; two or more "

@@ -23,7 +23,7 @@ struct DiagnoseOptions {
   std::string machine_out;    ///< --machine-out: the machine with the effects and the fitted variables
   std::string figures;        ///< --figures: folder for the figures
   std::string scan_noise;     ///< --scan-noise DRIVE_MM[,CORR_MM]: the probe drive's correlated error (overrides the problem's)
-  std::string weak_prior_centre = "start";  ///< --weak-prior-centre start|machine (DiagnoseSettings::weak_prior_at_machine)
+  std::string weak_prior_centre = "machine";  ///< --weak-prior-centre start|machine (DiagnoseSettings::weak_prior_at_machine)
   DiagnoseSettings settings;
   /// --measured-at I=PEAKS (repeatable): the same machine measured at beam current I; two or
   /// more make space charge a candidate (current_dependence.hpp).
