@@ -526,11 +526,24 @@ def synth_supports_scan_errors(tools):
     return "--scan-errors" in p.stdout
 
 
+def scalable_effects(case):
+    """The case's catalogue effects that scale by one size parameter (trim coil groups are design values)."""
+    return [e for e in case["effects"] if e["type"] != "trimcoil-sectors"]
+
+
+def scale_effect(e, factor):
+    """Multiplies the effect's size parameter by factor, keeping the size first drawn in _drawn_size."""
+    key = SIZE_PARAM[e["type"]]
+    e.setdefault("_drawn_size", abs(e[key]))
+    e[key] *= factor
+    e["_size"] = abs(e[key])
+
+
 def cap_effects(case, tools, d, dv_path):
     """Shrinks each of a case's catalogue effects (not trim coil groups) until it alone moves the truth's
     reference turns by at most RAW_CAP_MM (all turns tracked, before any measurement; each effect on its
     own, so that a pair keeps its smaller member's size); records the drawn sizes."""
-    scalable = [e for e in case["effects"] if e["type"] != "trimcoil-sectors"]
+    scalable = scalable_effects(case)
     every = case["effects"]
     try:
         for e in scalable:
@@ -539,10 +552,7 @@ def cap_effects(case, tools, d, dv_path):
                 raw = raw_signature(tools, case, d, dv_path, None)[0]
                 if not raw > RAW_CAP_MM:
                     break
-                key = SIZE_PARAM[e["type"]]
-                e.setdefault("_drawn_size", abs(e[key]))
-                e[key] *= 0.9 * RAW_CAP_MM / raw
-                e["_size"] = abs(e[key])
+                scale_effect(e, 0.9 * RAW_CAP_MM / raw)
     finally:
         case["effects"] = every
     capped = [e for e in scalable if "_drawn_size" in e]
@@ -568,15 +578,10 @@ OUTSIDE_SIZE_KEY = {"profile-bump": "amplitude_rel", "transit-time": "dgap_mm", 
 
 def shrink_case(case, factor):
     """Scales the case's shrinkable changes by factor, recording the drawn sizes; False when it has none."""
-    done = False
-    for e in case["effects"]:
-        if e["type"] == "trimcoil-sectors":
-            continue
-        key = SIZE_PARAM[e["type"]]
-        e.setdefault("_drawn_size", abs(e[key]))
-        e[key] *= factor
-        e["_size"] = abs(e[key])
-        done = True
+    effects = scalable_effects(case)
+    for e in effects:
+        scale_effect(e, factor)
+    done = bool(effects)
     o = case["outside"]
     if o:
         key = OUTSIDE_SIZE_KEY[o["kind"]]
