@@ -1080,6 +1080,9 @@ def main(argv):
     ap.add_argument("--diagnose-arg", action="append", default=[], metavar="ARG",
                     help="pass ARG to every turnfit-diagnose (repeatable; e.g. --diagnose-arg=--weak-prior-centre "
                          "--diagnose-arg=machine)")
+    ap.add_argument("--only", type=lambda v: [int(x) for x in v.split(",")], default=[],
+                    help="measure and diagnose only these cases (1-based, comma-separated; the draws are those "
+                         "of the whole run): to go back to a case, never for a score")
     ap.add_argument("--reuse", action="store_true",
                     help="with --work: keep a case's synth and diagnose outputs when its draw (case.json) is unchanged")
     try:
@@ -1128,6 +1131,8 @@ def main(argv):
         sys.stdout.flush()
         for k in range(args.cases):
             case = draw_case(master, k, args, variables)
+            if args.only and k + 1 not in args.only:
+                continue  # drawn (the later draws do not change), not measured
             case["failures"], case["notes"] = [], []
             cases.append(case)
             measure(case, args, tools, variables, work)

@@ -688,3 +688,73 @@ TEST_CASE("diagnose: --weak-prior-centre machine holds undetermined variables at
   CHECK(!at_start.weak_prior_at_machine);  // the report's weak_prior_centre
   CHECK(at_machine.weak_prior_at_machine);
 }
+
+TEST_CASE("diagnose: a coil group is screened at the mean field its coils had on every sector", "[diagnose]") {
+  // same_mean_field doubles the group's bmax variables (4 of 8 sectors), and nothing else: the
+  // field it gives with the group on the even sectors has the azimuthal mean of the coils on
+  // all sectors at the old values, so the signature is the group's pattern alone.
+  TempDir tmp;
+  std::vector<double> xt;
+  const Machine m0 = moved_ring8({}, {}, xt);
+  const std::string peaks = turns_as_peaks(m0, tmp, "peaks.csv");
+  auto p = load_turn_problem(tmp.file("p.json", "{\"format\": \"turnfit-problem/1\", \"machine\": \"" +
+                                                    ring8("machine.json") + "\", \"peaks\": \"" + peaks +
+                                                    "\", \"bunch\": \"reference\", \"variables\": \"paper\"}"));
+  const Catalogue cat = effect_catalogue(*p, {"trimcoil-sectors", "sector-strength"});
+  const Candidate* group = nullptr;
+  const Candidate* sector = nullptr;
+  for (const auto& c : cat.candidates) {
+    if (c.label == "TC4-TC6 on the even sectors") group = &c;
+    if (c.type == "sector-strength") sector = &c;
+  }
+  REQUIRE(group);
+  REQUIRE(sector);
+  const auto& vs = p->variables();
+  std::vector<std::string> names;
+  for (const auto& v : vs) names.push_back(v.name);
+  std::vector<double> x = p->start();
+  std::map<std::string, double> set = {{"tc04mb", 1.0e-3}, {"tc05mb", -0.5e-3}, {"tc06mb", 0.8e-3}};
+  std::vector<size_t> want;
+  for (size_t q = 0; q < vs.size(); ++q)
+    if (set.count(vs[q].name)) x[q] = set[vs[q].name], want.push_back(q);
+  REQUIRE(want.size() == 3);
+
+  Machine m = p->machine();
+  std::vector<double> y = x;
+  CHECK(same_mean_field(*sector, m, vs, y).empty());
+  CHECK(y == x);
+  std::vector<size_t> scaled = same_mean_field(*group, m, vs, y);
+  std::sort(scaled.begin(), scaled.end());
+  CHECK(scaled == want);
+  for (size_t q = 0; q < vs.size(); ++q) CHECK(y[q] == (set.count(vs[q].name) ? 2 * x[q] : x[q]));
+  {  // within the bounds: 1.5 mT on 4 of 8 sectors would need 3 mT, and tc05mb stops at its bound
+    std::vector<double> z = x;
+    z[want[1]] = 1.5e-3;
+    Machine mz = p->machine();
+    same_mean_field(*group, mz, vs, z);
+    CHECK(z[want[1]] == vs[want[1]].upper);
+    CHECK(z[want[0]] == 2 * x[want[0]]);
+  }
+
+  Machine all = p->machine();
+  set_dvars(all, names, x);
+  m.doc["effects"] = json::array({group->entries[0]});
+  revalidate(m);
+  set_dvars(m, names, y);
+  const TrackModel a = make_track_model(all), b = make_track_model(m);
+  for (double r : {2.5, 2.6, 2.7}) {
+    INFO("r = " << r << " m");
+    const int n = 36000;
+    double mean = 0, peak = 0;
+    for (int k = 0; k < n; ++k) {
+      FieldSample fa, fb;
+      const double th = 2 * kPi * (k + 0.5) / n;
+      REQUIRE(a.field(r, th, fa));
+      REQUIRE(b.field(r, th, fb));
+      mean += (fb.bz_T - fa.bz_T) / n;
+      peak = std::max(peak, std::fabs(fb.bz_T - fa.bz_T));
+    }
+    CHECK(peak > 2e-4);                    // the pattern: the coils' field, +- on the sectors
+    CHECK(std::fabs(mean) < 1e-3 * peak);  // and no change of the mean
+  }
+}

@@ -22,6 +22,37 @@ using Eigen::Index;
 using Eigen::MatrixXd;
 using Eigen::VectorXd;
 
+// (See diagnose.hpp.)
+std::vector<size_t> same_mean_field(const Candidate& c, Machine& m, const std::vector<TurnVariable>& vars,
+                                    std::vector<double>& x) {
+  std::vector<size_t> scaled;
+  if (c.type != "trimcoil-sectors") return scaled;
+  const int sym = m.field.symmetry;
+  const size_t on = c.instance["sectors"].size();
+  if (sym < 2 || on == 0 || on >= static_cast<size_t>(sym)) return scaled;
+  const double f = static_cast<double>(sym) / static_cast<double>(on);
+  std::set<std::string> group;
+  for (const auto& name : c.instance["coils"]) group.insert(name.get<std::string>());
+  std::set<std::string> bmax;  // the group's bmax pointers
+  for (size_t i = 0; i < m.trimcoils.size(); ++i) {
+    if (!group.count(m.trimcoils[i].name)) continue;
+    bmax.insert("/trimcoils/" + std::to_string(i) + "/bmax_T");
+    json& b = m.doc["trimcoils"][i]["bmax_T"];
+    if (b.is_number()) b = f * b.get<double>();
+  }
+  revalidate(m);
+  for (size_t q = 0; q < vars.size() && q < x.size(); ++q) {
+    const auto it = m.dvars.find(vars[q].name);
+    if (it == m.dvars.end() || it->second.targets.empty()) continue;
+    bool alone = true;
+    for (const auto& t : it->second.targets) alone = alone && bmax.count(t.pointer) > 0;
+    if (!alone) continue;
+    x[q] = std::clamp(f * x[q], vars[q].lower, vars[q].upper);
+    scaled.push_back(q);
+  }
+  return scaled;
+}
+
 namespace {
 
 // A round's refits run side by side (refit_one below; on 2 cores two at a time, each on one thread):
@@ -571,14 +602,17 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
 
   // One signature column: the state's machine with `entries` appended, (e - e0) / h.
   // With `x` (not empty): at that design instead of the state's (a curved candidate's path).
+  // With `mean_of` (a trim-coil group): at the group's mean field (same_mean_field).
   auto signature_column = [&](const State& S, const std::vector<double>& e0, const std::vector<json>& entries, double h,
-                              const std::vector<double>& x = {}) {
+                              const std::vector<double>& x = {}, const Candidate* mean_of = nullptr) {
     const size_t nd = rows.point.size();
     Machine v = S.prob->machine();
+    std::vector<double> xs = x.empty() ? S.x : x;
+    if (mean_of) same_mean_field(*mean_of, v, S.prob->variables(), xs);
     append_entries(v, entries);
     const auto q = S.prob->with_machine(std::move(v), S.prob->variables(), S.x, true);
     std::vector<unsigned char> m;
-    const std::vector<double> ev = residual(*q, x.empty() ? S.x : x, m);
+    const std::vector<double> ev = residual(*q, xs, m);
     std::vector<double> col(nd);
     for (size_t r = 0; r < nd; ++r) {
       const size_t i = rows.point[r];
@@ -593,7 +627,7 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
     std::vector<std::vector<double>> out_cols;
     auto column_of = [&](const std::vector<json>& entries, double h) { return signature_column(S, e0, entries, h); };
     if (c.discrete) {
-      out_cols.push_back(column_of(c.entries, 1));
+      out_cols.push_back(signature_column(S, e0, c.entries, 1, {}, &c));
       return out_cols;
     }
     for (const auto& prm : c.params) {
@@ -602,6 +636,17 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
       out_cols.push_back(column_of(entries, prm.step));
     }
     return out_cols;
+  };
+
+  // A discrete candidate's prior rows (one per variable, whitened): the variables' moves that
+  // same_mean_field makes with it, (x' - x) / sigma; zero for any other candidate.
+  auto prior_moves = [&](const State& S, const Candidate& c) {
+    const auto& vars = S.prob->variables();
+    VectorXd d = VectorXd::Zero(static_cast<Index>(vars.size()));
+    Machine v = S.prob->machine();
+    std::vector<double> xs = S.x;
+    for (size_t q : same_mean_field(c, v, vars, xs)) d[static_cast<Index>(q)] = (xs[q] - S.x[q]) / prior_sigma(vars[q]);
+    return d;
   };
 
   // The nonlinear check of a detection limit at one size: the state's model with `entries`
@@ -974,6 +1019,9 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
         jobs.push_back({static_cast<int>(k), 0});
     }
     for (size_t a : atoms_needed) jobs.push_back({-1, a});
+    std::vector<VectorXd> atom_prior(n_atoms);
+    const size_t n_vars = st.x.size();
+    for (size_t a : atoms_needed) atom_prior[a] = prior_moves(st, cat.atoms[a]);
     parallel_for(jobs.size(), threads, [&](size_t j, unsigned) {
       const auto [k, a] = jobs[j];
       if (k < 0)
@@ -1078,11 +1126,20 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
           if ((q == 0 || q + 1 == c.atoms.size()) && nrm < 1e-12) ends_zero = true;
         }
         if (ends_zero) continue;
+        // The prior rows: each atom scales its own coil's variable, so the group's moves are the sum.
+        for (size_t a : c.atoms) row.C.col(0).tail(static_cast<Index>(n_vars)) += atom_prior[a];
       } else {
         for (size_t q = 0; q < cand_cols[k].size(); ++q)
           for (size_t r = 0; r < nd; ++r) row.C(static_cast<Index>(r), static_cast<Index>(q)) = cand_cols[k][q][r];
       }
       row.sc = curved ? screen_path(base, row.C, row.path, c.curve_step) : screen_columns(base, row.C);
+      // A discrete candidate is on or off: a negative scale is not it (at the same mean field
+      // a coil group's column is, to first order, minus that of the group on the other
+      // sectors, which is screened as a candidate of its own).
+      if (c.discrete && !(row.sc.c[0] > 0)) {
+        row.sc.c[0] = 0;
+        row.sc.dchi2 = 0;
+      }
       // Held-out gain: each fold predicted by base and candidate fitted without it.
       for (int f = 0; f < K; ++f) {
         const auto& tr = train[static_cast<size_t>(f)];
@@ -1090,8 +1147,9 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
         const Base& fb = fold_base[static_cast<size_t>(f)];
         const MatrixXd Ct = row.C(tr, Eigen::all);
         const MatrixXd PC = Ct - fb.Q * (fb.Q.transpose() * Ct);
-        const VectorXd cc = curved ? VectorXd::Constant(1, path_min(fb.Pz, PC, row.path).x)
-                                   : VectorXd(-PC.completeOrthogonalDecomposition().solve(fb.Pz));
+        VectorXd cc = curved ? VectorXd::Constant(1, path_min(fb.Pz, PC, row.path).x)
+                             : VectorXd(-PC.completeOrthogonalDecomposition().solve(fb.Pz));
+        if (c.discrete) cc[0] = std::max(0.0, cc[0]);  // on or off, as above
         const VectorXd d_base = -fb.R.triangularView<Eigen::Upper>().solve(fb.Qtz);
         const VectorXd d_cand =
             -fb.R.triangularView<Eigen::Upper>().solve(fb.Qtz + fb.Q.transpose() * signature(Ct, row.path, cc));
@@ -1476,9 +1534,12 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
         start_vals.push_back(val);
         for (size_t k : c.params[q].entries) entries[k][c.params[q].key] = val;
       }
-      const size_t first = append_entries(v, entries);
       std::vector<TurnVariable> nv = st.prob->variables();
       std::vector<double> x = st.x;
+      // A coil group starts at its mean field, where its column was taken (same_mean_field):
+      // the linear moves below are from there, and the half and quarter steps keep it.
+      same_mean_field(c, v, nv, x);
+      const size_t first = append_entries(v, entries);
       // The variables' linear moves toward the joint optimum, within bounds. A discrete
       // candidate is on at its full size in the refit whatever scale the screen fitted.
       // The moves are those for the effect's clamped start, not the screen's unclamped estimate.

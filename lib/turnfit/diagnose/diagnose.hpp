@@ -59,6 +59,24 @@ struct Catalogue {
 };
 Catalogue effect_catalogue(const TurnPatternProblem& p, const std::vector<std::string>& types);
 
+/// A trim-coil group (a trimcoil-sectors candidate) moved onto its sectors at the mean field
+/// its coils had on all of them: each coil's bmax times N / |sectors| (2 for the odd or the
+/// even sectors), which is where the diagnosis takes the group's signature column and starts its
+/// refit. The variables fitted without the effect carry the group's mean field. The effect alone
+/// would halve it, a change of millimetres in every turn that the variables then take back;
+/// in a signature column (one finite step) the curvature of that round trip swamped the part
+/// they cannot take back, the group's azimuthal pattern. (A blind tuning case: TC4-TC12 on the
+/// even sectors at 1.1 mT screened at a gain of 0.09 in chi2, while single coils and an n = 2
+/// bump gained 60-75.) At the same mean the column is the pattern.
+/// `x` (the design of `vars`) gets the factor on each variable that sets nothing but bmax of
+/// the group's coils, within the variable's bounds (a coil the bounds stop keeps part of its mean
+/// change: the group as the problem allows it), and those indices are returned; the group's bmax
+/// values in m's document get the factor too (they count for coils no variable sets, or that a
+/// variable adds to). A variable that also sets anything else is left alone. Any other
+/// candidate: nothing changes.
+std::vector<size_t> same_mean_field(const Candidate& c, Machine& m, const std::vector<TurnVariable>& vars,
+                                    std::vector<double>& x);
+
 /// Every effect type of the catalogue, in report order.
 const std::vector<std::string>& catalogue_types();
 
