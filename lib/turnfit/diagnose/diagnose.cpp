@@ -40,7 +40,6 @@ std::vector<size_t> same_mean_field(const Candidate& c, Machine& m, const std::v
     json& b = m.doc["trimcoils"][i]["bmax_T"];
     if (b.is_number()) b = f * b.get<double>();
   }
-  revalidate(m);
   for (size_t q = 0; q < vars.size() && q < x.size(); ++q) {
     const auto it = m.dvars.find(vars[q].name);
     if (it == m.dvars.end() || it->second.targets.empty()) continue;

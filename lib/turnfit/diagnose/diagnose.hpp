@@ -72,8 +72,9 @@ Catalogue effect_catalogue(const TurnPatternProblem& p, const std::vector<std::s
 /// the group's coils, within the variable's bounds (a coil the bounds stop keeps part of its mean
 /// change: the group as the problem allows it), and those indices are returned; the group's bmax
 /// values in m's document get the factor too (they count for coils no variable sets, or that a
-/// variable adds to). A variable that also sets anything else is left alone. Any other
-/// candidate: nothing changes.
+/// variable adds to); the caller revalidates m (the diagnosis appends the effect's entries next,
+/// which does). A variable that also sets anything else is left alone. Any other candidate:
+/// nothing changes.
 std::vector<size_t> same_mean_field(const Candidate& c, Machine& m, const std::vector<TurnVariable>& vars,
                                     std::vector<double>& x);
 
