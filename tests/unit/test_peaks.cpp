@@ -860,3 +860,34 @@ TEST_CASE("peaks: a turn that loses area to its neighbour's wide fit does not ma
     if (i > 0) CHECK(std::fabs(p.r_mm - truth[i]) < std::max(0.25, 3 * p.r_err_mm));
   }
 }
+
+TEST_CASE("peaks: a turn cut by the profile's outer end is found, flagged edge, and leaves its neighbour in place",
+          "[peaks]") {
+  // RRL's outer end as blind run AB's control had it: turns 5.5 mm apart and 1 mm rms, the last
+  // one centred half a reading-step pair inside the last reading, so the readings peak one reading
+  // before the end. The renormalized smoothing still rises into the last reading there: without a
+  // candidate at the end the turn went unfound, and the fit gave its readings to the turn before,
+  // 0.16 mm outward.
+  std::vector<double> c;
+  for (int i = 0; i < 9; ++i) c.push_back(4300 + 5.5 * i);
+  for (const double inside : {0.5, 0.8}) {
+    const auto p = make_profile(c, 1.0, 4290, c.back() + inside, 0.5, 0.004, 7);
+    const PeakResult r = find_peaks(p.x, p.y, PeakSettings{}, 174);
+    CAPTURE(inside);
+    REQUIRE(r.peaks.size() == c.size());
+    CHECK(r.peaks.back().turn == 182);
+    CHECK((r.peaks.back().flags & kPeakEdge) != 0);
+    // The part inside the end has its mean inward of the centre (a truncated Gaussian's); the
+    // neighbour sits where it is.
+    CHECK(r.peaks.back().r_mm < c.back());
+    CHECK(r.peaks.back().r_mm > c.back() - 1.0);
+    CHECK(r.peaks[r.peaks.size() - 2].r_mm == Approx(c[c.size() - 2]).epsilon(0).margin(0.02));
+    CHECK((r.peaks[r.peaks.size() - 2].flags & kPeakEdge) == 0);
+  }
+  // A profile that ends on the baseline, where the noise alone rises into the last reading at
+  // times, gains no turn at its end.
+  const auto q = make_profile(c, 1.0, 4290, c.back() + 8, 0.5, 0.004, 7);
+  const PeakResult rq = find_peaks(q.x, q.y, PeakSettings{}, 174);
+  CHECK(rq.peaks.size() == c.size());
+  CHECK((rq.peaks.back().flags & kPeakEdge) == 0);
+}

@@ -1165,6 +1165,16 @@ PeakResult find_peaks(const std::vector<double>& x, const std::vector<double>& y
   for (long k = 0; k + 1 < n; ++k)
     if (d[static_cast<size_t>(k)] > 0 && d[static_cast<size_t>(k + 1)] <= 0)
       tops.push_back(ys[static_cast<size_t>(k + 1)] > ys[static_cast<size_t>(k)] ? k + 1 : k);
+  // A turn cut by an end of the readings (a probe's outer end, where the last turn may lie
+  // across it) has no downward crossing: the smoothing, renormalized over the readings that
+  // exist, leans toward the end, so the smoothed profile still rises into the last reading even
+  // where the readings have turned (blind run AB's control: RRL's turn 182, 1294 of 2000
+  // particles seen, peaked one reading before the end and went unfound; its area, fitted into
+  // turn 181, moved that turn 0.16 mm outward at an uncertainty of 0.007 mm). The end itself
+  // is then a candidate; the thresholds below and the fit decide, and the fit flags it edge.
+  // (Only the outer end: turns are numbered from the first peak found, which --first-turn
+  // names, so a new candidate at the inner end would renumber every turn.)
+  if (n >= 2 && d[static_cast<size_t>(n - 1)] > 0) tops.push_back(n - 1);
   out.candidates = static_cast<int>(tops.size());
   auto above = [&](long k) { return ys[static_cast<size_t>(k)] - w.bg[static_cast<size_t>(k)]; };
   for (long k : tops) out.scale = std::max(out.scale, above(k));
