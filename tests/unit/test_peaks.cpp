@@ -864,8 +864,8 @@ TEST_CASE("peaks: a turn that loses area to its neighbour's wide fit does not ma
 TEST_CASE("peaks: a turn cut by the profile's outer end is found, flagged edge, and leaves its neighbour in place",
           "[peaks]") {
   // RRL's outer end as blind run AB's control had it: turns 5.5 mm apart and 1 mm rms, the last
-  // one centred half a reading-step pair inside the last reading, so the readings peak one reading
-  // before the end. The renormalized smoothing still rises into the last reading there: without a
+  // one centred one or two readings (0.5 or 0.8 mm) inside the last reading, so the readings peak
+  // just before the end. The renormalized smoothing still rises into the last reading there: without a
   // candidate at the end the turn went unfound, and the fit gave its readings to the turn before,
   // 0.16 mm outward.
   std::vector<double> c;
