@@ -1174,7 +1174,7 @@ PeakResult find_peaks(const std::vector<double>& x, const std::vector<double>& y
   // is then a candidate; the thresholds below and the fit decide, and the fit flags it edge.
   // (Only the outer end: turns are numbered from the first peak found, which --first-turn
   // names, so a new candidate at the inner end would renumber every turn.)
-  if (n >= 2 && d[static_cast<size_t>(n - 1)] > 0) tops.push_back(n - 1);
+  if (d[static_cast<size_t>(n - 1)] > 0) tops.push_back(n - 1);  // (n >= 5: checked above)
   out.candidates = static_cast<int>(tops.size());
   auto above = [&](long k) { return ys[static_cast<size_t>(k)] - w.bg[static_cast<size_t>(k)]; };
   for (long k : tops) out.scale = std::max(out.scale, above(k));
