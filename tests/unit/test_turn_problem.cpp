@@ -5,6 +5,7 @@
 #include <atomic>
 #include <cmath>
 #include <fstream>
+#include <random>
 #include <set>
 #include <stdexcept>
 
@@ -339,6 +340,129 @@ TEST_CASE("Lawson's minimax step: the Chebyshev solution of linear models", "[lo
   // The ridge shortens the step toward 0.
   const Eigen::VectorXd g = lawson_minimax_step(J, r, 1, 2000);
   CHECK(std::fabs(g(0)) < 3 - 0.1);
+}
+
+namespace {
+// A least-squares fit of the columns J to data with noise e (residual z = e minus its projection),
+// its covariance C = (J^T J)^-1 and the sandwich's ratio to it, per variable.
+std::vector<double> hac_ratio(const Eigen::MatrixXd& J, const Eigen::VectorXd& e, size_t ndata,
+                              const std::vector<std::pair<size_t, size_t>>& blocks, std::vector<double>& lag1,
+                              std::vector<double>& bw) {
+  const Eigen::MatrixXd C = (J.transpose() * J).inverse();
+  const Eigen::VectorXd z = e - J * (C * (J.transpose() * e));
+  const std::vector<double> zv(z.data(), z.data() + z.size());
+  const Eigen::MatrixXd R = hac_covariance(C, J, zv, ndata, blocks, lag1, bw);
+  std::vector<double> out;
+  for (Eigen::Index j = 0; j < J.cols(); ++j) out.push_back(std::sqrt(R(j, j) / C(j, j)));
+  return out;
+}
+}  // namespace
+
+TEST_CASE("hac_covariance: white residuals keep the statistical sigma, AR(1) ones widen it as (1+rho)/(1-rho)",
+          "[localsearch]") {
+  std::mt19937_64 rng(20261130);
+  std::normal_distribution<double> g(0, 1);
+  std::vector<double> lag1, bw;
+  // A mean and a slope fitted to 2000 turns of one probe.
+  const Eigen::Index m = 2000;
+  Eigen::MatrixXd J(m, 2);
+  for (Eigen::Index i = 0; i < m; ++i) J.row(i) << 1, static_cast<double>(i) / static_cast<double>(m);
+  Eigen::VectorXd white(m), ar(m);
+  double prev = 0;
+  const double rho = 0.8;
+  for (Eigen::Index i = 0; i < m; ++i) {
+    white(i) = g(rng);
+    prev = rho * prev + std::sqrt(1 - rho * rho) * g(rng);  // unit variance, lag-1 correlation rho
+    ar(i) = prev;
+  }
+  const std::vector<std::pair<size_t, size_t>> one = {{0, static_cast<size_t>(m)}};
+  // White: the ratio is 1 within the sandwich's own scatter (a few percent at 2000 rows).
+  std::vector<double> rw = hac_ratio(J, white, static_cast<size_t>(m), one, lag1, bw);
+  REQUIRE(lag1.size() == 1);
+  CHECK(std::fabs(lag1[0]) < 0.1);
+  CHECK(bw[0] < 3);
+  for (double r : rw) CHECK(r == Approx(1).margin(0.15));
+  // AR(1), rho 0.8: the mean's variance is (1 + rho) / (1 - rho) = 9 times the independent
+  // one's, so its sigma 3 times (the slope's likewise); Bartlett's kernel at Andrews' bandwidth
+  // comes within about 15 % of that (it is biased low). Without the kernel (bandwidth 0) the
+  // ratio would be near 1.
+  std::vector<double> ra = hac_ratio(J, ar, static_cast<size_t>(m), one, lag1, bw);
+  CHECK(lag1[0] == Approx(rho).margin(0.05));
+  CHECK(bw[0] > 10);
+  CHECK(ra[0] > 2.4);
+  CHECK(ra[0] < 3.3);
+  CHECK(ra[1] > 2.4);
+  CHECK(ra[1] < 3.3);
+  // Two probes, each correlated within: the blocks are summed apart. Half the rows each, the
+  // same residual: the ratio stays that of each half's correlation (about 3), not more.
+  const std::vector<std::pair<size_t, size_t>> two = {{0, static_cast<size_t>(m / 2)}, {static_cast<size_t>(m / 2), static_cast<size_t>(m)}};
+  std::vector<double> r2 = hac_ratio(J, ar, static_cast<size_t>(m), two, lag1, bw);
+  REQUIRE(lag1.size() == 2);
+  CHECK(r2[0] > 2.2);
+  CHECK(r2[0] < 3.3);
+  // A prior row (after the data rows) counts by its information: a variable only the prior
+  // holds keeps the prior's sigma whatever the data's residual.
+  Eigen::MatrixXd Jp = Eigen::MatrixXd::Zero(m + 1, 3);
+  Jp.topLeftCorner(m, 2) = J;
+  Jp(m, 2) = 1;  // the third variable: its prior row alone, sigma 1
+  Eigen::VectorXd e3(m + 1);
+  e3.head(m) = ar;
+  e3(m) = 0.3;
+  std::vector<double> r3 = hac_ratio(Jp, e3, static_cast<size_t>(m), one, lag1, bw);
+  CHECK(r3[2] == Approx(1).margin(1e-12));
+  CHECK(r3[0] > 2.4);
+  // Sizes that do not agree are a software error.
+  CHECK_THROWS(hac_covariance(Eigen::MatrixXd::Identity(2, 2), J, std::vector<double>(3, 0.0), 3, one, lag1, bw));
+}
+
+TEST_CASE("hac_covariance: a residual that oscillates with a column widens that column's sigma as Monte Carlo does",
+          "[localsearch]") {
+  // Columns cos(w i) and sin(w i) at a fractional tune of 0.4 (w = 0.8 pi: the turns alternate),
+  // fitted to noise resonant at w (AR(2) with poles r e^(+-iw), r = 0.9). The residual's lag-1
+  // correlation is negative, so a bandwidth from the residual would be 0; each variable's
+  // influence series is slow, and its sandwich sigma comes near the spread of the estimates
+  // over many draws, several times the statistical sigma.
+  const Eigen::Index m = 600;
+  const double w = 0.8 * M_PI, r = 0.9;
+  Eigen::MatrixXd J(m, 2);
+  for (Eigen::Index i = 0; i < m; ++i) J.row(i) << std::cos(w * static_cast<double>(i)), std::sin(w * static_cast<double>(i));
+  const Eigen::MatrixXd C = (J.transpose() * J).inverse();
+  std::mt19937_64 rng(7);
+  std::normal_distribution<double> g(0, 1);
+  auto draw = [&] {
+    Eigen::VectorXd e(m);
+    double e1 = 0, e2 = 0;
+    for (Eigen::Index i = -200; i < m; ++i) {  // 200 steps to forget the start
+      const double v = 2 * r * std::cos(w) * e1 - r * r * e2 + g(rng);
+      e2 = e1;
+      e1 = v;
+      if (i >= 0) e(i) = v;
+    }
+    return e;
+  };
+  // The estimates' spread over 400 draws (each scaled by its own residual variance, as the
+  // fit's statistical sigma would be).
+  const int draws = 400;
+  double s2 = 0, ratio_sum = 0, stat_ratio_sum = 0, lag_sum = 0;
+  std::vector<double> lag1, bw;
+  const std::vector<std::pair<size_t, size_t>> one = {{0, static_cast<size_t>(m)}};
+  for (int d = 0; d < draws; ++d) {
+    const Eigen::VectorXd e = draw();
+    const Eigen::VectorXd th = C * (J.transpose() * e);
+    s2 += th(0) * th(0);
+    const Eigen::VectorXd z = e - J * th;
+    const double var = z.squaredNorm() / static_cast<double>(m - 2);
+    const std::vector<double> zv(z.data(), z.data() + z.size());
+    const Eigen::MatrixXd R = hac_covariance(C, J, zv, static_cast<size_t>(m), one, lag1, bw);
+    ratio_sum += std::sqrt(R(0, 0));
+    stat_ratio_sum += std::sqrt(C(0, 0) * var);
+    lag_sum += lag1[0];
+  }
+  const double truth = std::sqrt(s2 / draws), hac = ratio_sum / draws, stat = stat_ratio_sum / draws;
+  CHECK(lag_sum / draws < -0.3);  // the residual alternates
+  CHECK(stat < 0.5 * truth);      // the statistical sigma claims far too much
+  CHECK(hac > 0.7 * truth);       // the sandwich comes near the truth (Bartlett is biased low)
+  CHECK(hac < 1.3 * truth);
 }
 
 TEST_CASE("identifiability in words: equivalent variables, a free one, correlated pairs", "[localsearch]") {

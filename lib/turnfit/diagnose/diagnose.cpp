@@ -860,12 +860,22 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
   MatrixXd atom_cols;  // data rows x atoms, at the current state
 
   // A selected effect's machine-file entry and its parameters' sigmas, from a fit that holds it.
-  auto describe = [&](const Selected& sel, const LocalSearchResult& r) {
+  // robust: the sigmas robust to residuals that neighbouring turns share (LocalSearchResult::
+  // robust), else the statistical ones.
+  auto describe = [&](const Selected& sel, const LocalSearchResult& r, bool robust = true) {
     const Candidate& c = *sel.cand;
     json entry = {{"type", c.type}};
     json sig = json::object();
     for (auto it = c.instance.begin(); it != c.instance.end(); ++it) entry[it.key()] = it.value();
-    auto var_at = [&](size_t q) -> const FittedVariable& { return r.variables[sel.param_vars[q]]; };
+    struct ValueSigma {
+      double value, sigma;
+    };
+    auto var_at = [&](size_t q) -> ValueSigma {
+      const FittedVariable& v = r.variables[sel.param_vars[q]];
+      return {v.value, robust ? v.sigma_robust : v.sigma};
+    };
+    if (r.robust.correlation.rows() != r.correlation.rows()) robust = false;  // a result without the sandwich
+    const Eigen::MatrixXd& correlation = robust ? r.robust.correlation : r.correlation;
     if (c.type == "field-harmonic") {
       const int n = c.instance["n"].get<int>();
       if (n == 0) {
@@ -874,7 +884,7 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
         entry["phase_deg"] = 0.0;
       } else {
         const double ac = var_at(0).value, as = var_at(1).value, sc = var_at(0).sigma, ss = var_at(1).sigma;
-        const double rho = r.correlation(static_cast<Index>(sel.param_vars[0]), static_cast<Index>(sel.param_vars[1]));
+        const double rho = correlation(static_cast<Index>(sel.param_vars[0]), static_cast<Index>(sel.param_vars[1]));
         const double A = std::hypot(ac, as);
         // amplitude and phase of A cos(n (theta - phi)) = ac cos(n theta) + as sin(n theta);
         // first-order error propagation with the correlation of ac and as.
@@ -2007,6 +2017,16 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
     const auto [entry, sig] = describe(selected[k], st_fit);
     out.effects[k]["parameters"] = entry;
     out.effects[k]["sigma"] = sig;
+    out.effects[k]["sigma_statistical"] = describe(selected[k], st_fit, false).second;
+  }
+  if (!selected.empty()) {
+    json probes = json::object();
+    for (size_t q = 0; q < st_fit.sigma_probes.size() && q < st_fit.robust.lag1.size(); ++q)
+      probes[st_fit.sigma_probes[q]] = {{"lag1", st_fit.robust.lag1[q]}, {"bandwidth_turns", st_fit.robust.bandwidth[q]}};
+    out.uncertainty = {{"sigma", "sandwich: robust to residuals that neighbouring turns share (Newey-West, Bartlett "
+                                 "kernel, Andrews' AR(1) bandwidth), never below the statistical sigma"},
+                       {"sigma_statistical", "from J^T J: every turn independent"},
+                       {"probes", probes}};
   }
   out.x_after.assign(st.x.begin(), st.x.begin() + static_cast<long>(st.n_problem));
   // "before" with the final noise, so that before and after compare on one scale (its dof and

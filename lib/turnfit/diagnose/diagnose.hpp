@@ -261,6 +261,9 @@ struct Diagnosis {
   /// The final model's chi2 per degree of freedom, at least 1: the elimination's losses and the
   /// ambiguity's distances are divided by it (quasi-likelihood).
   double overdispersion = 1;
+  /// How the effects' sigmas were formed (the final fit's sandwich: per probe the residual's
+  /// lag-1 correlation and the kernel's bandwidth); null without a selected effect.
+  nlohmann::json uncertainty;
   nlohmann::json candidates = nlohmann::json::array();  ///< every candidate tried, with its scores
   nlohmann::json not_candidates = nlohmann::json::array();
   nlohmann::json rounds = nlohmann::json::array();      ///< greedy rounds: refits and choice

@@ -159,6 +159,7 @@ json diagnosis_report(const TurnPatternProblem& p, const Diagnosis& d, const std
   j["effects"] = d.effects;
   j["ambiguous"] = d.ambiguous;
   j["overdispersion"] = d.overdispersion;
+  if (!d.uncertainty.is_null()) j["uncertainty"] = d.uncertainty;
   json located = json::array();
   for (const auto& f : d.located_before.findings) located.push_back(f);
   j["located"] = located;

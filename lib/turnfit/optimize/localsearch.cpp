@@ -590,6 +590,85 @@ Eigen::VectorXd lawson_minimax_step(const Eigen::MatrixXd& J, const Eigen::Vecto
   return d;
 }
 
+namespace {
+
+/// Andrews' AR(1) bandwidth for Bartlett's kernel from a series' lag-1 correlation rho over m
+/// terms (0 when rho <= 0; rho at most 0.97, the bandwidth below m).
+double andrews_bandwidth(double rho, Eigen::Index m) {
+  if (!(rho > 0) || m < 2) return 0;
+  rho = std::min(rho, 0.97);
+  const double a = 4 * rho * rho / ((1 - rho) * (1 - rho) * (1 + rho) * (1 + rho));
+  return std::min(1.1447 * std::cbrt(static_cast<double>(m) * a), static_cast<double>(m - 1));
+}
+
+/// sum_ij k(|i - j|) x_i y_j over a block, Bartlett's weights at bandwidth b.
+double bartlett_sum(const Eigen::Ref<const Eigen::VectorXd>& x, const Eigen::Ref<const Eigen::VectorXd>& y, double b) {
+  const Eigen::Index m = x.size();
+  double s = x.dot(y);
+  for (Eigen::Index k = 1; k < m && static_cast<double>(k) < b + 1; ++k) {
+    const double w = 1 - static_cast<double>(k) / (b + 1);
+    s += w * (x.head(m - k).dot(y.tail(m - k)) + x.tail(m - k).dot(y.head(m - k)));
+  }
+  return s;
+}
+
+double lag1_of(const Eigen::Ref<const Eigen::VectorXd>& h) {
+  const Eigen::Index m = h.size();
+  const double hh = h.squaredNorm();
+  return hh > 0 && m > 1 ? h.head(m - 1).dot(h.tail(m - 1)) / hh : 0.0;
+}
+
+}  // namespace
+
+Eigen::MatrixXd hac_covariance(const Eigen::MatrixXd& cov, const Eigen::MatrixXd& J, const std::vector<double>& z,
+                               size_t ndata, const std::vector<std::pair<size_t, size_t>>& blocks,
+                               std::vector<double>& lag1, std::vector<double>& bandwidth) {
+  using Eigen::Index;
+  const Index n = J.cols(), rows = J.rows(), nd = static_cast<Index>(ndata);
+  if (cov.rows() != n || cov.cols() != n || static_cast<Index>(z.size()) != rows || nd > rows)
+    throw Error(ExitCode::software, "hac_covariance: sizes do not agree");
+  for (const auto& [b, e] : blocks)
+    if (e > ndata || e < b) throw Error(ExitCode::software, "hac_covariance: a block outside the data rows");
+  lag1.clear();
+  bandwidth.clear();
+  // The priors' part: their information, C J_p^T J_p C.
+  const Eigen::MatrixXd JpC = J.bottomRows(rows - nd) * cov;
+  Eigen::MatrixXd out = JpC.transpose() * JpC;
+  // Each data row's influence on each variable: H(i, a) = (J C)(i, a) z_i.
+  Eigen::MatrixXd H = J.topRows(nd) * cov;
+  for (Index i = 0; i < nd; ++i) H.row(i) *= z[static_cast<size_t>(i)];
+  for (const auto& [b, e] : blocks) {
+    const Index m = static_cast<Index>(e - b);
+    // The residual's own lag-1 correlation and bandwidth, reported per probe.
+    Eigen::Map<const Eigen::VectorXd> zb(z.data() + b, m);
+    const double rho = lag1_of(zb);
+    lag1.push_back(rho);
+    if (m == 0) {
+      bandwidth.push_back(0);
+      continue;
+    }
+    const auto Hb = H.middleRows(static_cast<Index>(b), m);
+    // Each variable's own bandwidth, from its influence series' lag-1 correlation: the series
+    // that matters for its variance (a residual that oscillates with a signature's column
+    // demodulates into a slow influence even where the residual's lag-1 correlation is negative).
+    std::vector<double> bw(static_cast<size_t>(n));
+    for (Index a = 0; a < n; ++a) bw[static_cast<size_t>(a)] = andrews_bandwidth(lag1_of(Hb.col(a)), m);
+    std::vector<double> sorted = bw;
+    std::nth_element(sorted.begin(), sorted.begin() + static_cast<std::ptrdiff_t>(sorted.size() / 2), sorted.end());
+    bandwidth.push_back(sorted.empty() ? 0.0 : sorted[sorted.size() / 2]);
+    // A pair at the larger of its two bandwidths (one kernel per pair: every 2 x 2 block stays
+    // positive semidefinite).
+    for (Index a = 0; a < n; ++a)
+      for (Index c = a; c < n; ++c) {
+        const double v =
+            bartlett_sum(Hb.col(a), Hb.col(c), std::max(bw[static_cast<size_t>(a)], bw[static_cast<size_t>(c)]));
+        out(a, c) += v;
+        if (c != a) out(c, a) += v;
+      }
+  }
+  return out;
+}
+
 std::vector<std::string> describe_identifiability(const std::vector<std::string>& names, const Eigen::MatrixXd& Jd,
                                                   const Eigen::MatrixXd& correlation) {
   std::vector<std::string> out;
@@ -990,15 +1069,26 @@ LocalSearchResult local_search(TurnPatternProblem& p, const std::vector<double>&
 
   // Statistics at the result: the Jacobian there (reused when Ceres' last one was there).
   Eigen::MatrixXd J;
+  Point at_u;  // the residual rows at u
   {
     std::lock_guard<std::mutex> lock(res.mu);
-    if (res.kept.u == u && !res.stale) J = res.jac;
+    if (res.kept.u == u && !res.stale) {
+      J = res.jac;
+      at_u = res.kept;
+    }
   }
   if (J.size() == 0) {
     res.form_jacobian(u);
     std::lock_guard<std::mutex> lock(res.mu);
     J = res.jac;
+    at_u = res.kept;
   }
+  // A turn the design did not match carries a fixed miss (no slope): no part in the sandwich.
+  std::vector<double> z_at = at_u.res;
+  for (size_t i = 0; i < nmeas && i < at_u.matched.size(); ++i)
+    if (!at_u.matched[i]) z_at[i] = 0;
+  std::vector<std::pair<size_t, size_t>> probe_blocks;
+  for (size_t q = 0; q < meas.probes.size(); ++q) probe_blocks.push_back(meas.probe_range(static_cast<int>(q)));
   const Eigen::MatrixXd Jd = J.topRows(static_cast<Eigen::Index>(nmeas));
   // Posterior (priors included): pseudo-inverse of J^T J.
   Eigen::JacobiSVD<Eigen::MatrixXd> svd_full(J, Eigen::ComputeThinV);
@@ -1010,7 +1100,10 @@ LocalSearchResult local_search(TurnPatternProblem& p, const std::vector<double>&
   // the fit's weak prior: with --weak-prior 0.1 that prior alone would pass the tenth-of-a-range
   // test for every variable).
   const Eigen::MatrixXd cov_data = (Jd.transpose() * Jd + Eigen::MatrixXd::Identity(n, n)).inverse();
+  const Eigen::MatrixXd cov_robust =
+      hac_covariance(cov, J, z_at, nmeas, probe_blocks, out.robust.lag1, out.robust.bandwidth);
   out.correlation = Eigen::MatrixXd::Zero(n, n);
+  out.robust.correlation = Eigen::MatrixXd::Zero(n, n);
   for (size_t j = 0; j < n; ++j) {
     FittedVariable v;
     const TurnVariable& tv = p.variables()[j];
@@ -1019,6 +1112,7 @@ LocalSearchResult local_search(TurnPatternProblem& p, const std::vector<double>&
     v.start = x0[j];
     v.value = out.x[j];
     v.sigma = std::sqrt(std::max(0.0, cov(j, j))) * res.range[j];
+    v.sigma_robust = std::sqrt(std::max({0.0, cov(j, j), cov_robust(j, j)})) * res.range[j];
     v.lower = p.lower()[j];
     v.upper = p.upper()[j];
     v.determined = std::sqrt(std::max(0.0, cov_data(j, j))) < 0.1;
@@ -1027,6 +1121,8 @@ LocalSearchResult local_search(TurnPatternProblem& p, const std::vector<double>&
     for (size_t k = 0; k < n; ++k) {
       const double d = std::sqrt(std::max(0.0, cov(j, j) * cov(k, k)));
       out.correlation(j, k) = d > 0 ? cov(j, k) / d : (j == k ? 1 : 0);
+      const double dr = std::sqrt(std::max(0.0, cov_robust(j, j) * cov_robust(k, k)));
+      out.robust.correlation(j, k) = dr > 0 ? cov_robust(j, k) / dr : (j == k ? 1 : 0);
     }
   }
   Eigen::JacobiSVD<Eigen::MatrixXd> svd(Jd, Eigen::ComputeThinV);

@@ -108,6 +108,9 @@ struct FittedVariable {
   std::string name, unit;
   double start = 0, value = 0;
   double sigma = 0;       ///< 1-sigma uncertainty from the fit (priors included)
+  /// The same, robust to residuals that neighbouring turns share (LocalSearchResult::robust):
+  /// never below sigma.
+  double sigma_robust = 0;
   double lower = 0, upper = 0;
   bool determined = false;  ///< the data fix it to better than a tenth of its bound range
   bool at_bound = false;    ///< the fit ended on a bound (within 1e-6 of its range)
@@ -119,6 +122,17 @@ struct LocalSearchResult {
   FitSummary before, after;
   std::vector<FittedVariable> variables;
   Eigen::MatrixXd correlation;        ///< of the variables (priors included)
+  /// The uncertainties when the residual is not white: a sandwich covariance (heteroskedasticity
+  /// and autocorrelation consistent, Newey and West's Bartlett kernel over each probe's turns in
+  /// order, each variable's bandwidth by Andrews' AR(1) rule: hac_covariance). A model
+  /// error that neighbouring turns share (a missing effect, the centre of a finite bunch) biases
+  /// the variables where the statistical sigma assumes independent turns; this widens them by
+  /// what the residual shows of it. It cannot see a bias the variables absorbed entirely.
+  struct Robust {
+    std::vector<double> lag1;       ///< per probe (sigma_probes' order): the whitened residual's lag-1 correlation
+    std::vector<double> bandwidth;  ///< per probe: the median of the variables' kernel bandwidths [turns]
+    Eigen::MatrixXd correlation;    ///< of the variables, from the sandwich
+  } robust;
   std::vector<double> singular_values;  ///< of the data's Jacobian, variables scaled to their bounds
   std::vector<std::string> identifiability;  ///< what the data do not determine, in words
   std::vector<std::string> sigma_probes;     ///< probes, in measured order
@@ -172,6 +186,21 @@ struct LocalSearchResult {
 /// min sum_i w_i (r_i + J_i delta)^2 + mu |delta|^2, mu = ridge * trace(J^T W J) / n. Exposed for
 /// its test: on a linear model it converges to the minimax (Chebyshev) solution.
 Eigen::VectorXd lawson_minimax_step(const Eigen::MatrixXd& J, const Eigen::VectorXd& r, double ridge, int sweeps = 200);
+
+/// The sandwich covariance of a least-squares fit whose residual rows may be correlated along
+/// each block (a probe's turns, in order): C the fit's covariance (the pseudo-inverse of J^T J),
+/// h_i = (J C)_i z_i row i's influence on the variables, and cov(a, c) = sum over each block's
+/// rows i, j of k(|i - j|) h_ia h_jc plus C J_p^T J_p C over the rows from `ndata` on (priors:
+/// their information, not resampled). k is Bartlett's kernel, 1 - |i - j| / (b + 1), with each
+/// variable's bandwidth by Andrews' AR(1) rule from its influence series' lag-1 correlation rho,
+/// b = 1.1447 (m a)^(1/3), a = 4 rho^2 / ((1 - rho)^2 (1 + rho)^2) (b = 0 when rho <= 0; rho at
+/// most 0.97, b below the block's length m); a pair at the larger of its two. lag1 gets each
+/// block's residual lag-1 correlation, bandwidth the median of its variables' bandwidths. With
+/// white residuals it averages C; a residual that neighbouring rows share (or one that
+/// oscillates with a variable's column) widens it by what that residual does to the fit.
+Eigen::MatrixXd hac_covariance(const Eigen::MatrixXd& cov, const Eigen::MatrixXd& J, const std::vector<double>& z,
+                               size_t ndata, const std::vector<std::pair<size_t, size_t>>& blocks,
+                               std::vector<double>& lag1, std::vector<double>& bandwidth);
 
 /// What the turns do not determine, in words: variables that share directions the data fix to
 /// worse than a tenth of a bound range form groups ("A, B and C: only their sum (in bound

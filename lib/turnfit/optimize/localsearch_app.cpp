@@ -309,6 +309,7 @@ nlohmann::json localsearch_report(const TurnPatternProblem& p, const LocalSearch
                     {"start", jnum(v.start)},
                     {"value", jnum(v.value)},
                     {"sigma", jnum(v.sigma)},
+                    {"sigma_robust", jnum(v.sigma_robust)},
                     {"lower", jnum(v.lower)},
                     {"upper", jnum(v.upper)},
                     {"determined", v.determined},
@@ -321,6 +322,12 @@ nlohmann::json localsearch_report(const TurnPatternProblem& p, const LocalSearch
     corr.push_back(row);
   }
   j["correlation"] = corr;
+  {
+    nlohmann::json rob = nlohmann::json::object();
+    for (size_t q = 0; q < r.sigma_probes.size() && q < r.robust.lag1.size(); ++q)
+      rob[r.sigma_probes[q]] = {{"lag1", jnum(r.robust.lag1[q])}, {"bandwidth_turns", jnum(r.robust.bandwidth[q])}};
+    j["robust"] = rob;
+  }
   nlohmann::json sv = nlohmann::json::array();
   for (double s : r.singular_values) sv.push_back(jnum(s));
   j["singular_values"] = sv;
