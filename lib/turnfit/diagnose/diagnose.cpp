@@ -2023,8 +2023,9 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
     json probes = json::object();
     for (size_t q = 0; q < st_fit.sigma_probes.size() && q < st_fit.robust.lag1.size(); ++q)
       probes[st_fit.sigma_probes[q]] = {{"lag1", st_fit.robust.lag1[q]}, {"bandwidth_turns", st_fit.robust.bandwidth[q]}};
-    out.uncertainty = {{"sigma", "sandwich: robust to residuals that neighbouring turns share (Newey-West, Bartlett "
-                                 "kernel, Andrews' AR(1) bandwidth), never below the statistical sigma"},
+    out.uncertainty = {{"sigma", "sandwich: robust to residuals that neighbouring turns share (Bartlett's kernel over "
+                                 "each probe's turns, each variable's bandwidth by Andrews' AR(1) rule on its influence "
+                                 "series), never below the statistical sigma"},
                        {"sigma_statistical", "from J^T J: every turn independent"},
                        {"probes", probes}};
   }

@@ -262,7 +262,8 @@ struct Diagnosis {
   /// ambiguity's distances are divided by it (quasi-likelihood).
   double overdispersion = 1;
   /// How the effects' sigmas were formed (the final fit's sandwich: per probe the residual's
-  /// lag-1 correlation and the kernel's bandwidth); null without a selected effect.
+  /// lag-1 correlation and the median of the variables' kernel bandwidths); null without a
+  /// selected effect.
   nlohmann::json uncertainty;
   nlohmann::json candidates = nlohmann::json::array();  ///< every candidate tried, with its scores
   nlohmann::json not_candidates = nlohmann::json::array();
