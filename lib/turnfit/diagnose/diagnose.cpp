@@ -867,6 +867,8 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
     json entry = {{"type", c.type}};
     json sig = json::object();
     for (auto it = c.instance.begin(); it != c.instance.end(); ++it) entry[it.key()] = it.value();
+    if (r.robust.correlation.rows() != r.correlation.rows()) robust = false;  // a result without the sandwich
+    const Eigen::MatrixXd& correlation = robust ? r.robust.correlation : r.correlation;
     struct ValueSigma {
       double value, sigma;
     };
@@ -874,8 +876,6 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
       const FittedVariable& v = r.variables[sel.param_vars[q]];
       return {v.value, robust ? v.sigma_robust : v.sigma};
     };
-    if (r.robust.correlation.rows() != r.correlation.rows()) robust = false;  // a result without the sandwich
-    const Eigen::MatrixXd& correlation = robust ? r.robust.correlation : r.correlation;
     if (c.type == "field-harmonic") {
       const int n = c.instance["n"].get<int>();
       if (n == 0) {
