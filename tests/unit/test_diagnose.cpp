@@ -758,3 +758,80 @@ TEST_CASE("diagnose: a coil group is screened at the mean field its coils had on
     CHECK(std::fabs(mean) < 1e-3 * peak);  // and no change of the mean
   }
 }
+
+TEST_CASE("diagnose: an effect not named, at a share of its detection limit, moves the named one's parameters as "
+          "bias_unseen says",
+          "[diagnose]") {
+  TempDir tmp;
+  // A first-harmonic bump to name; the tilts of the cavities to leave out.
+  std::vector<double> xt;
+  Machine truth = moved_ring8({"rinit", "vchange"}, {0.02, -0.03}, xt);
+  truth.doc["effects"] = json::array({{{"type", "field-harmonic"},
+                                       {"n", 1},
+                                       {"amplitude_T", 2e-4},
+                                       {"phase_deg", 60.0},
+                                       {"r_mm", 3000.0},
+                                       {"width_mm", 400.0}}});
+  revalidate(truth);
+  const std::string machine = ring8("machine.json");
+  auto diagnosis = [&](const Machine& t, const std::string& name) {
+    const std::string peaks = turns_as_peaks(t, tmp, name + ".csv");
+    auto p = load_turn_problem(
+        tmp.file(name + ".json", "{\"format\": \"turnfit-problem/1\", \"machine\": \"" + machine + "\", \"peaks\": \"" +
+                                     peaks + "\", \"bunch\": \"reference\", \"variables\": [\"rinit\", \"prinit\", \"vchange\"]}"));
+    DiagnoseSettings s;
+    s.threads = 2;
+    s.types = {"field-harmonic", "voltage-tilt"};
+    return diagnose(*p, p->start(), s);
+  };
+  auto named_bump = [](const Diagnosis& d) -> const json* {
+    const json* bump = nullptr;
+    for (const auto& e : d.effects) {
+      if (e["type"] != "field-harmonic") return nullptr;  // a tilt named: it was not left out
+      bump = &e;
+    }
+    return d.effects.size() == 1 ? bump : nullptr;
+  };
+  const Diagnosis d1 = diagnosis(truth, "bump");
+  const json* b1 = named_bump(d1);
+  REQUIRE(b1);
+  const std::string bump_label = (*b1)["label"];
+  REQUIRE((*b1)["bias_unseen"].contains("amplitude_T"));
+  const double bound = (*b1)["bias_unseen"]["amplitude_T"]["shift"].get<double>();
+  CHECK(bound > 0);
+  CHECK(d1.uncertainty["unseen_effects"].get<size_t>() > 0);
+  // The tilt that moves the bump's amplitude most at its limit (read from the report, with the
+  // side it was reported on); every row's moves are within the bound the bump reports.
+  std::string cavity;
+  double at = 0, move = 0;
+  for (const auto& c : d1.candidates) {
+    if (!c.contains("bias_at_limit")) continue;
+    for (const auto& dir : c["bias_at_limit"]) {
+      if (!dir["moves"].contains(bump_label)) continue;
+      const double m = dir["moves"][bump_label]["amplitude_T"].get<double>();
+      CHECK(std::fabs(m) <= bound * (1 + 1e-12));
+      if (c["type"] == "voltage-tilt" && std::fabs(m) > std::fabs(move)) {
+        cavity = c["instance"]["cavity"];
+        at = dir["at"]["slope"].get<double>();
+        move = m;
+      }
+    }
+  }
+  REQUIRE_FALSE(cavity.empty());
+  INFO("voltage-tilt of " << cavity << " at its limit " << at << " moves the amplitude by " << move);
+  CHECK(move != 0);
+  // Half of that tilt in the truth: below its limit, so not named, and the bump's amplitude
+  // moves by half the reported move (the fits are nonlinear, the report's move is linear: 0.999
+  // times it when this was written).
+  Machine both = truth;
+  both.doc["effects"].push_back({{"type", "voltage-tilt"}, {"cavity", cavity}, {"slope", 0.5 * at}});
+  revalidate(both);
+  const Diagnosis d2 = diagnosis(both, "bump-and-tilt");
+  for (const auto& e : d2.effects) UNSCOPED_INFO("named with the tilt: " << e["label"].get<std::string>());
+  const json* b2 = named_bump(d2);
+  REQUIRE(b2);
+  const double moved = (*b2)["parameters"]["amplitude_T"].get<double>() - (*b1)["parameters"]["amplitude_T"].get<double>();
+  INFO("the amplitude moved by " << moved << ", " << moved / (0.5 * move) << " times half the reported move");
+  CHECK(moved == Approx(0.5 * move).epsilon(0.05));
+  CHECK(std::fabs(moved) <= (*b2)["bias_unseen"]["amplitude_T"]["shift"].get<double>());
+}

@@ -262,8 +262,10 @@ struct Diagnosis {
   /// ambiguity's distances are divided by it (quasi-likelihood).
   double overdispersion = 1;
   /// How the effects' sigmas were formed (the final fit's sandwich: per probe the residual's
-  /// lag-1 correlation and the median of the variables' kernel bandwidths); null without a
-  /// selected effect.
+  /// lag-1 correlation and the median of the variables' kernel bandwidths), and what bounds the
+  /// effects' bias_unseen (each catalogue effect not named, at its detection limit, taken up by
+  /// the final model's linear refit; each candidate row's bias_at_limit holds its moves); null
+  /// without a selected effect.
   nlohmann::json uncertainty;
   nlohmann::json candidates = nlohmann::json::array();  ///< every candidate tried, with its scores
   nlohmann::json not_candidates = nlohmann::json::array();

@@ -271,6 +271,16 @@ std::string diagnosis_markdown(const TurnPatternProblem& p, const json& r) {
       }
       md << "; delta chi2 " << num(e["delta_chi2"], 4) << ", delta BIC " << num(e["delta_bic"], 4)
          << ", held-out gain " << num(e["held_out_gain"], 4) << ".\n";
+      if (e.contains("bias_unseen") && !e["bias_unseen"].empty()) {
+        md << "  What an effect not named could move, one at a time at its detection limit:";
+        std::string sep2 = " ";
+        for (auto it = e["bias_unseen"].begin(); it != e["bias_unseen"].end(); ++it) {
+          const json& b = it.value();
+          md << sep2 << it.key() << " by " << num(b["shift"], 2) << " (" << b["from"].get<std::string>() << ")";
+          sep2 = "; ";
+        }
+        md << ".\n";
+      }
       json entry = e["parameters"];
       entry["type"] = e["type"];
       md << "  Machine-file entry: `" << json_text(entry) << "`\n";
