@@ -34,6 +34,21 @@ TurnTable one_probe(int n, double r_err) {
   return t;
 }
 
+/// A diagnosis of truth t's own turns (noiseless) against nominal ring8 with the variables rinit,
+/// prinit and vchange, on 2 threads, with only the effect types given.
+Diagnosis diagnose_truth(const Machine& t, const TempDir& tmp, const std::string& name,
+                         const std::vector<std::string>& types) {
+  const std::string peaks = turns_as_peaks(t, tmp, name + ".csv");
+  auto p = load_turn_problem(tmp.file(name + ".json", "{\"format\": \"turnfit-problem/1\", \"machine\": \"" +
+                                                          ring8("machine.json") + "\", \"peaks\": \"" + peaks +
+                                                          "\", \"bunch\": \"reference\", \"variables\": [\"rinit\", "
+                                                          "\"prinit\", \"vchange\"]}"));
+  DiagnoseSettings s;
+  s.threads = 2;
+  s.types = types;
+  return diagnose(*p, p->start(), s);
+}
+
 const json* find_kind(const json& findings, const std::string& kind) {
   for (const auto& f : findings)
     if (f["kind"] == kind) return &f;
@@ -309,16 +324,8 @@ TEST_CASE("diagnose: a concealed first-harmonic bump is named, sized and refitte
   // The truth: rinit and vchange moved, plus (or not) a 2 G first harmonic at 3.0 m.
   std::vector<double> xt;
   Machine truth = moved_ring8({"rinit", "vchange"}, {0.02, -0.03}, xt);
-  const std::string machine = ring8("machine.json");
   auto diagnosis = [&](const Machine& t, const std::string& name) {
-    const std::string peaks = turns_as_peaks(t, tmp, name + ".csv");
-    auto p = load_turn_problem(
-        tmp.file(name + ".json", "{\"format\": \"turnfit-problem/1\", \"machine\": \"" + machine + "\", \"peaks\": \"" +
-                                     peaks + "\", \"bunch\": \"reference\", \"variables\": [\"rinit\", \"prinit\", \"vchange\"]}"));
-    DiagnoseSettings s;
-    s.threads = 2;
-    s.types = {"field-harmonic", "gap-bow"};
-    return diagnose(*p, p->start(), s);
+    return diagnose_truth(t, tmp, name, {"field-harmonic", "gap-bow"});
   };
   const Diagnosis control = diagnosis(truth, "control");
   CHECK(control.verdict == "nothing-missing");
@@ -773,16 +780,8 @@ TEST_CASE("diagnose: an effect not named, at a share of its detection limit, mov
                                        {"r_mm", 3000.0},
                                        {"width_mm", 400.0}}});
   revalidate(truth);
-  const std::string machine = ring8("machine.json");
   auto diagnosis = [&](const Machine& t, const std::string& name) {
-    const std::string peaks = turns_as_peaks(t, tmp, name + ".csv");
-    auto p = load_turn_problem(
-        tmp.file(name + ".json", "{\"format\": \"turnfit-problem/1\", \"machine\": \"" + machine + "\", \"peaks\": \"" +
-                                     peaks + "\", \"bunch\": \"reference\", \"variables\": [\"rinit\", \"prinit\", \"vchange\"]}"));
-    DiagnoseSettings s;
-    s.threads = 2;
-    s.types = {"field-harmonic", "voltage-tilt"};
-    return diagnose(*p, p->start(), s);
+    return diagnose_truth(t, tmp, name, {"field-harmonic", "voltage-tilt"});
   };
   auto named_bump = [](const Diagnosis& d) -> const json* {
     const json* bump = nullptr;
