@@ -49,6 +49,11 @@ Diagnosis diagnose_truth(const Machine& t, const TempDir& tmp, const std::string
   return diagnose(*p, p->start(), s);
 }
 
+/// The concealed bump of the whole-diagnosis tests: a 2 G first harmonic at 3.0 m.
+json bump_2G() {
+  return {{"type", "field-harmonic"}, {"n", 1}, {"amplitude_T", 2e-4}, {"phase_deg", 60.0}, {"r_mm", 3000.0}, {"width_mm", 400.0}};
+}
+
 const json* find_kind(const json& findings, const std::string& kind) {
   for (const auto& f : findings)
     if (f["kind"] == kind) return &f;
@@ -331,12 +336,7 @@ TEST_CASE("diagnose: a concealed first-harmonic bump is named, sized and refitte
   CHECK(control.verdict == "nothing-missing");
   CHECK(control.effects.empty());
 
-  truth.doc["effects"] = json::array({{{"type", "field-harmonic"},
-                                       {"n", 1},
-                                       {"amplitude_T", 2e-4},
-                                       {"phase_deg", 60.0},
-                                       {"r_mm", 3000.0},
-                                       {"width_mm", 400.0}}});
+  truth.doc["effects"] = json::array({bump_2G()});
   revalidate(truth);
   const Diagnosis d = diagnosis(truth, "bump");
   CHECK(d.verdict == "missing-physics");
@@ -773,12 +773,7 @@ TEST_CASE("diagnose: an effect not named, at a share of its detection limit, mov
   // A first-harmonic bump to name; the tilts of the cavities to leave out.
   std::vector<double> xt;
   Machine truth = moved_ring8({"rinit", "vchange"}, {0.02, -0.03}, xt);
-  truth.doc["effects"] = json::array({{{"type", "field-harmonic"},
-                                       {"n", 1},
-                                       {"amplitude_T", 2e-4},
-                                       {"phase_deg", 60.0},
-                                       {"r_mm", 3000.0},
-                                       {"width_mm", 400.0}}});
+  truth.doc["effects"] = json::array({bump_2G()});
   revalidate(truth);
   auto diagnosis = [&](const Machine& t, const std::string& name) {
     return diagnose_truth(t, tmp, name, {"field-harmonic", "voltage-tilt"});
