@@ -124,7 +124,8 @@ Scoring (per true effect, then per case):
      phase_deg, r_mm, width_mm; sector-strength relative; gap-bow sagitta_mm; voltage-tilt
      slope) with a reported sigma > 0: |value - truth| <= 2 sigma. A harmonic's sign and phase
      are compared modulo its symmetry (amplitude A at phase p equals -A at p + 180/n; phases
-     modulo 360/n; n = 0 has no phase).
+     modulo 360/n; n = 0 has no phase). Where the report gives bias_unseen (what one catalogue
+     effect not named could move the parameter by), also |value - truth| <= 2 sigma + that shift.
    chi2 per degree of freedom before and after the refit, as the report gives them.
 Checks (exit 1 when one fails): at least --min-right (90 %) of the visible cases (single,
 pair and outside-catalogue cases of visible size whose true effects are not all "not
@@ -701,8 +702,11 @@ def params_of(e):
 
 
 def param_checks(t, e):
-    """[(name, value, truth, sigma, z)] for the comparable parameters with a sigma > 0."""
+    """[(name, value, truth, sigma, z, bias)] for the comparable parameters with a sigma > 0; bias is
+    the report's bias_unseen shift (what one catalogue effect not named could move it by), None
+    when the report has none."""
     p, s = params_of(e), e.get("sigma", {}) or {}
+    b = e.get("bias_unseen", {}) or {}
     out = []
     typ = t["type"]
     if typ == "field-harmonic":
@@ -721,13 +725,13 @@ def param_checks(t, e):
             if name == "phase_deg":
                 period = 360.0 / n
                 diff = (diff + period / 2) % period - period / 2
-            out.append((name, v, t[name], sg, diff / sg))
+            out.append((name, v, t[name], sg, diff / sg, (b.get(name) or {}).get("shift")))
         return out
     for name in COMPARABLE.get(typ, ()):
         v, sg = p.get(name), s.get(name)
         if v is None or not sg:
             continue
-        out.append((name, v, t[name], sg, (v - t[name]) / sg))
+        out.append((name, v, t[name], sg, (v - t[name]) / sg, (b.get(name) or {}).get("shift")))
     return out
 
 
@@ -994,6 +998,9 @@ def summary(cases, min_right):
          "controls": len(ctrl), "control_false_alarms": len(ctrl_fa),
          "false_alarms_effect_cases": sum(len(c["false_alarms"]) for c in done if c["kind"] != "control"),
          "params": len(params), "params_within2": sum(1 for p in params if abs(p[4]) <= 2),
+         "params_with_bias": sum(1 for p in params if len(p) > 5 and p[5] is not None),
+         "params_within2_bias": sum(1 for p in params if len(p) > 5 and p[5] is not None
+                                    and abs(p[4] * p[3]) <= 2 * p[3] + p[5]),
          "misnumbered": len(mis)}
     s["right_fraction"] = s["right"] / s["visible"] if s["visible"] else float("nan")
     s["checks"] = {
@@ -1013,7 +1020,9 @@ def summary_text(s, min_right):
         "limit): %d" % (s["near_right"], s["near"], s["not_visible"]),
         "controls: %d, false alarms %d; false alarms in effect cases: %d named effects" % (
             s["controls"], s["control_false_alarms"], s["false_alarms_effect_cases"]),
-        "parameters of right effects within 2 sigma of the truth: %d of %d" % (s["params_within2"], s["params"]),
+        "parameters of right effects within 2 sigma of the truth: %d of %d; within 2 sigma + bias_unseen "
+        "(the reports that give it): %d of %d" % (s["params_within2"], s["params"], s["params_within2_bias"],
+                                                  s["params_with_bias"]),
         "checks: " + "; ".join("%s: %s" % (k, "ok" if v else "FAIL") for k, v in s["checks"].items()),
     ]
 
@@ -1036,7 +1045,9 @@ def print_details(c):
     for r in c.get("per_effect", []):
         print("#   %s %s: %s (report's candidate: %s, detection limit %s)%s" % (
             c["label"], r["truth"], r["outcome"], r["candidate_status"], fmt(r["detection_limit"], "%.3g"),
-            "; parameters " + ", ".join("%s %.4g vs %.4g (sigma %.2g, %+.1f)" % p for p in r["params"])
+            "; parameters " + ", ".join("%s %.4g vs %.4g (sigma %.2g, %+.1f)" % tuple(p[:5]) +
+                                        (", bias_unseen %.2g" % p[5] if len(p) > 5 and p[5] is not None else "")
+                                        for p in r["params"])
             if r["params"] else ""))
     if c.get("false_alarms"):
         print("#   %s false alarms: %s" % (c["label"], ", ".join(c["false_alarms"])))
