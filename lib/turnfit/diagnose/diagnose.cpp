@@ -186,6 +186,17 @@ VectorXd signature(const MatrixXd& C, const std::vector<double>& path, const Vec
 
 json jnum(double v) { return std::isfinite(v) ? json(v) : json(nullptr); }
 
+/// Amplitude A and phase phi [rad] of A cos(n (theta - phi)) = ac cos(n theta) + as sin(n theta):
+/// their derivatives by ac and as (all 0 at A = 0), for first-order propagation.
+struct QuadratureSlopes {
+  double dA_dc = 0, dA_ds = 0, dp_dc = 0, dp_ds = 0;
+};
+QuadratureSlopes quadrature_slopes(double ac, double as, int n) {
+  const double A = std::hypot(ac, as);
+  if (!(A > 0)) return {};
+  return {ac / A, as / A, -as / (A * A) / n, ac / (A * A) / n};
+}
+
 double norm_angle(double deg, double period) {
   double a = std::fmod(deg, period);
   return a < 0 ? a + period : a;
@@ -855,12 +866,11 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
   // A catalogue effect at its detection limit as round 1 reports it (the base fit's screen), for
   // the bias it would leave in the named effects' parameters: its signature's data rows in mm per
   // measured point (NaN: not a data row) and the variables' moves its path or coil group makes
-  // with it (by name). A direction with no signature to size is kept with bounded = false.
+  // with it (by name). A direction with no signature to size is kept with data_mm empty.
   struct AtLimit {
     const Candidate* c = nullptr;
     std::string key;  ///< the parameter whose limit it is
     double size = 0;  ///< signed (the direction's component along key)
-    bool bounded = true;
     std::vector<double> data_mm;
     std::map<std::string, double> moves;
   };
@@ -899,10 +909,8 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
         const double ac = var_at(0).value, as = var_at(1).value, sc = var_at(0).sigma, ss = var_at(1).sigma;
         const double rho = correlation(static_cast<Index>(sel.param_vars[0]), static_cast<Index>(sel.param_vars[1]));
         const double A = std::hypot(ac, as);
-        // amplitude and phase of A cos(n (theta - phi)) = ac cos(n theta) + as sin(n theta);
         // first-order error propagation with the correlation of ac and as.
-        const double dA_dc = A > 0 ? ac / A : 0, dA_ds = A > 0 ? as / A : 0;
-        const double dp_dc = A > 0 ? -as / (A * A) / n : 0, dp_ds = A > 0 ? ac / (A * A) / n : 0;
+        const auto [dA_dc, dA_ds, dp_dc, dp_ds] = quadrature_slopes(ac, as, n);
         const double cov = rho * sc * ss;
         entry["amplitude_T"] = A;
         entry["phase_deg"] = norm_angle(std::atan2(as, ac) / n * 180 / M_PI, 360.0 / n);
@@ -1284,10 +1292,12 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
       // none; infinite, null in the report, when the fits put one beyond the range).
       std::map<std::string, double> lin_of, lim_of;
       double reported = -1;
+      std::vector<double> got_of(dirs.size());  // each direction's reported limit (checked, else linear)
       for (size_t q = 0; q < dirs.size(); ++q) {
         const Direction& d = dirs[q];
         const LimitSearch* ls = q < checked[k].size() && !checked[k][q].sizes.empty() ? &checked[k][q] : nullptr;
         const double got = !ls ? d.size : ls->beyond_range ? std::numeric_limits<double>::infinity() : ls->limit;
+        got_of[q] = got;
         auto larger = [](double x, double y) { return std::isnan(x) || std::isnan(y) ? std::nan("") : std::max(x, y); };
         const bool first = !lin_of.count(d.key);
         lin_of[d.key] = first ? d.size : larger(lin_of[d.key], d.size);
@@ -1348,8 +1358,7 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
       if (round == 1) {
         for (size_t q = 0; q < dirs.size(); ++q) {
           const Direction& d = dirs[q];
-          const LimitSearch* ls = q < checked[k].size() && !checked[k][q].sizes.empty() ? &checked[k][q] : nullptr;
-          double got = !ls ? d.size : ls->beyond_range ? std::numeric_limits<double>::infinity() : ls->limit;
+          double got = got_of[q];
           AtLimit a;
           a.c = &c;
           a.key = d.key;
@@ -1367,7 +1376,6 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
                 if (b * d.u[0] > 0) got = std::max(got, std::fabs(b));
           }
           if (got <= 0) {
-            a.bounded = false;
             at_limit.push_back(std::move(a));
             continue;
           }
@@ -2113,7 +2121,7 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
       std::set<std::string> unbounded, bounded;
       for (const AtLimit& a : at_limit) {
         if (clashes(*a.c, selected)) continue;
-        if (!a.bounded) {
+        if (a.data_mm.empty()) {
           unbounded.insert(a.c->label);
           continue;
         }
@@ -2160,10 +2168,10 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
             if (n == 0) {
               moved.push_back({"amplitude_T", d(0)});
             } else {
-              const double ac = x(0), as = x(1), A = std::hypot(ac, as);
-              if (A > 0) {
-                moved.push_back({"amplitude_T", (ac * d(0) + as * d(1)) / A});
-                moved.push_back({"phase_deg", (ac * d(1) - as * d(0)) / (A * A * n) * 180 / M_PI});
+              const QuadratureSlopes g = quadrature_slopes(x(0), x(1), n);
+              if (std::hypot(x(0), x(1)) > 0) {
+                moved.push_back({"amplitude_T", g.dA_dc * d(0) + g.dA_ds * d(1)});
+                moved.push_back({"phase_deg", (g.dp_dc * d(0) + g.dp_ds * d(1)) * 180 / M_PI});
               }
             }
             if (!c.shape.empty()) {
