@@ -13,6 +13,9 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstring>
+#include <limits>
+#include <random>
 #include <string>
 #include <vector>
 
@@ -107,6 +110,83 @@ TEST_CASE("fast track: the row table gives the spline's own samples at its azimu
   FieldSample out;
   CHECK_FALSE(map.sample_row(*tab, g.r_max_m() + 1e-6, 0, 0, out));
   CHECK_FALSE(map.sample_row(*tab, g.r_min_m() - 1e-6, 0, 0, out));
+}
+
+TEST_CASE("fast track: a group's lanes sampled together give sample_row_near's numbers bit for bit",
+          "[track][fast]") {
+  // sample_rows_near takes the lanes still in their cells eight at a time where the processor
+  // has AVX-512 (on other processors both paths are the scalar one and this checks the
+  // bookkeeping only). Radii: in the guessed cell, a cell off, without a guess, at the map's
+  // edges, off the map, NaN; groups of every size up to 16 lanes, so every partial block of
+  // eight is met.
+  const Machine m = load_machine(ring8("machine.json"));
+  const TrackModel model = make_track_model(m);
+  const PolarFieldMap& map = model.map;
+  const PolarGrid& g = map.grid();
+  const auto tab = map.row_table({0, 0.2, 0.3, 0.8, 8.0 / 9, 1.0 / 3});
+  REQUIRE(tab);
+  std::mt19937_64 rng(17);
+  std::uniform_real_distribution<double> unit(0, 1);
+  long compared = 0, mismatched = 0, vector_lanes = 0;
+  for (int trial = 0; trial < 4000; ++trial) {
+    const int n = 1 + trial % 16;
+    const int j = static_cast<int>(rng() % static_cast<unsigned>(g.ntheta));
+    const int s = static_cast<int>(rng() % static_cast<unsigned>(tab->nslot));
+    double r[16];
+    int cell_a[16], cell_b[16];
+    for (int l = 0; l < n; ++l) {
+      const int i = static_cast<int>(rng() % static_cast<unsigned>(g.nr - 1));
+      const unsigned kind = static_cast<unsigned>(rng() % 10);
+      r[l] = g.r_min_m() + (i + unit(rng)) * g.dr_m();
+      cell_a[l] = i;                                     // kinds 0-5: in the guessed cell
+      if (kind == 6) cell_a[l] = i > 0 ? i - 1 : i + 1;  // a cell off
+      if (kind == 7) cell_a[l] = -1;                     // no guess
+      if (kind == 8) r[l] = unit(rng) < 0.5 ? g.r_min_m() : g.r_max_m();  // the edges
+      if (kind == 9) {
+        const double off[3] = {g.r_min_m() - 1e-3, g.r_max_m() + 1e-3, std::nan("")};
+        r[l] = off[rng() % 3];
+      }
+      cell_b[l] = cell_a[l];
+    }
+    double bz[16], br[16], bt[16];
+    unsigned char good[16];
+    std::fill(good, good + 16, 1);
+    map.sample_rows_near(*tab, n, r, j, s, cell_a, bz, br, bt, good);
+    for (int l = 0; l < n; ++l) {
+      FieldSample f;
+      const bool in = map.sample_row_near(*tab, r[l], j, s, cell_b[l], f);
+      if (!in) f = FieldSample{};
+      ++compared;
+      vector_lanes += cell_b[l] == cell_a[l] && in;
+      // Bit for bit: the same doubles, the same cell kept, the same verdict.
+      if (!(bz[l] == f.bz_T && br[l] == f.dbz_dr_T_m && bt[l] == f.dbz_dth_T) || cell_a[l] != cell_b[l] ||
+          (good[l] != 0) != in)
+        ++mismatched;
+    }
+  }
+  INFO(compared << " lanes, " << vector_lanes << " inside the map");
+  CHECK(mismatched == 0);
+  CHECK(vector_lanes > compared / 2);
+}
+
+TEST_CASE("fast track: remainder_two_pi is std::remainder(x, 2 pi) bit for bit", "[track][fast]") {
+  std::vector<double> xs = {0.0, -0.0, kPi, -kPi, 3 * kPi, -3 * kPi, 2 * kPi, -2 * kPi, 5 * kPi, 1e300, -1e-300,
+                            std::numeric_limits<double>::infinity(), -std::numeric_limits<double>::infinity(),
+                            std::nan("")};
+  for (double e : {kPi, -kPi, 3 * kPi, -3 * kPi, 2 * kPi, -2 * kPi})
+    for (double x = e, y = e; std::fabs(x - e) <= 4 * std::fabs(e) * 1e-16; ) {
+      xs.push_back(x = std::nextafter(x, 10.0));
+      xs.push_back(y = std::nextafter(y, -10.0));
+    }
+  std::mt19937_64 rng(3);
+  std::uniform_real_distribution<double> wide(-20, 20), narrow(-1e-6, 1e-6);
+  for (int i = 0; i < 200000; ++i) xs.push_back(i % 2 ? wide(rng) : narrow(rng) + (i % 3 - 1) * 2 * kPi);
+  long differ = 0;
+  for (double x : xs) {
+    const double a = remainder_two_pi(x), b = std::remainder(x, 2 * kPi);
+    if (!(std::memcmp(&a, &b, sizeof a) == 0 || (std::isnan(a) && std::isnan(b)))) ++differ;
+  }
+  CHECK(differ == 0);
 }
 
 TEST_CASE("fast track: ring8 and its truth, default path against the reference stepper", "[track][fast]") {

@@ -121,6 +121,13 @@ class PolarFieldMap {
     from_rows(q.row, q.drow, u, out);
     return true;
   }
+  /// sample_row_near for the n lanes of a group at one stage: lane l's radius r_m[l] and cell
+  /// guess cell[l]; its field goes to bz[l], br[l], bt[l] (zeros off the map, where good[l] is
+  /// cleared; good is never set). The numbers are sample_row_near's bit for bit: with `vector`
+  /// and AVX-512 the lanes still in their cells go eight at a time (field/row_lanes.cpp), the
+  /// others one by one through sample_row_near.
+  void sample_rows_near(const FieldRowTable& t, int n, const double* r_m, int j, int s, int* cell, double* bz,
+                        double* br, double* bt, unsigned char* good, bool vector = true) const;
 
   /// The grid.
   const PolarGrid& grid() const { return grid_; }

@@ -116,7 +116,7 @@ double Gap::crossing_azimuth(double r_m) const {
       if (std::fabs(step) < 1e-16) break;
     }
   }
-  return std::remainder(angle_rad_ - psi, 2 * kPi);
+  return remainder_two_pi(angle_rad_ - psi);
 }
 
 GapKick Gap::kick(double x, double y, double t_s, double mass_MeV, double charge_e, GapPhysics physics,

@@ -127,6 +127,8 @@ struct AzParticle {
   double th = 0, th0 = 0, th_end = 0;
   double dnode = 0, node0 = 0;
   std::vector<Event> events;
+  /// The soonest e.next as next_event last saw them all (-inf: not known); see next_event.
+  double soonest = -std::numeric_limits<double>::infinity();
   TrackEnd end;
   /// How close land_and_act lands on an element's line [rad]: the reference stepper 1e-14, the
   /// group stepper 1e-12 (3e-12 m along a 3 m orbit), which saves it a step at most crossings.
@@ -181,7 +183,13 @@ struct AzParticle {
   /// The earliest event before `stop` (which it then becomes), or -1. Events close to th are
   /// refreshed from the current radius first.
   int next_event(double& stop) {
+    // Nothing to refresh and nothing before stop while the soonest event is 4 steps ahead and
+    // not before stop (the loop below would find so, event by event: e.next - th is no smaller
+    // for a later e.next); most grid steps of a turn. (A step to the run's end goes the whole
+    // way: an element at the last azimuth.)
+    if (soonest - th >= 4 * dnode && stop <= soonest && stop < th_end) return -1;
     int which = -1;
+    soonest = std::numeric_limits<double>::infinity();
     for (size_t i = 0; i < events.size(); ++i) {
       Event& e = events[i];
       if (e.next - th < 4 * dnode) {
@@ -195,6 +203,7 @@ struct AzParticle {
         stop = e.next;
         which = static_cast<int>(i);
       }
+      soonest = std::min(soonest, e.next);
     }
     return which;
   }
@@ -260,7 +269,7 @@ struct AzParticle {
       const double c2 = crossing_of(m, e, y[0] + dr);
       const double s2 = 1 - y[1] * y[1] - y[3] * y[3];
       if (!std::isnan(c2) && s2 > 0) {
-        const double slope = std::remainder(c2 - c, kTwoPi) / dr * (y[0] * y[1] / std::sqrt(s2));
+        const double slope = remainder_two_pi(c2 - c) / dr * (y[0] * y[1] / std::sqrt(s2));
         if (std::fabs(1 - slope) > 0.25) d /= 1 - slope;  // (near 1 the line is met tangentially)
       }
       if (std::fabs(d) < landing_tol) break;
@@ -309,6 +318,7 @@ struct AzParticle {
       }
     }
     e.next = th + kTwoPi;  // refreshed from r when it comes close
+    soonest = -std::numeric_limits<double>::infinity();  // next_event looks at every event again
     return true;
   }
 
@@ -464,7 +474,8 @@ void group_step(AzParticle* const* L, int n, double th, double h, int j0, const 
     return;
   }
   // Structure of arrays over the lanes: the stage states and the equations of motion are loops
-  // over lanes that the compiler vectorizes; only the field samples go lane by lane. The
+  // over lanes that the compiler vectorizes; the map's samples go eight lanes at a time with
+  // AVX-512 (PolarFieldMap::sample_rows_near), the effects lane by lane. The
   // expressions are lane_step's, term for term (so a lane's numbers do not depend on whether it
   // stepped alone or in a group).
   // The lanes' models share the map (track_azimuth_group); their coils and effects may differ
@@ -478,8 +489,10 @@ void group_step(AzParticle* const* L, int n, double th, double h, int j0, const 
   double ib[kMaxLanes], iv[kMaxLanes], bz[kMaxLanes], br[kMaxLanes], bt[kMaxLanes];
   unsigned char good[kMaxLanes], noaz[kMaxLanes];
   TrackModel::CoilHints* hints[kMaxLanes];
+  int cell[kMaxLanes];
   for (int l = 0; l < n; ++l) {
     for (int i = 0; i < 5; ++i) y[i][l] = L[l]->y[static_cast<size_t>(i)];
+    cell[l] = L[l]->cell;
     ib[l] = L[l]->f.inv_brho;
     iv[l] = L[l]->f.inv_v;
     good[l] = 1;
@@ -499,17 +512,8 @@ void group_step(AzParticle* const* L, int n, double th, double h, int j0, const 
     const int j = (j0 + sc.dj[st]) % nt;
     const int slot = sc.slot[st];
     const TrackModel::AzimuthTerms* terms = rest && one_model ? cache[0]->at(m, node, st) : nullptr;
-    for (int l = 0; l < n; ++l) {
-      FieldSample f;
-      // The cell guess as lane_step keeps it: a lane's numbers do not depend on its group.
-      if (!m.map.sample_row_near(tab, t[0][l], j, slot, L[l]->cell, f)) {
-        good[l] = 0;
-        f = FieldSample{};
-      }
-      bz[l] = f.bz_T;
-      br[l] = f.dbz_dr_T_m;
-      bt[l] = f.dbz_dth_T;
-    }
+    // The cell guess as lane_step keeps it: a lane's numbers do not depend on its group.
+    m.map.sample_rows_near(tab, n, t[0], j, slot, cell, bz, br, bt, good);
     if (rest) {
       // A lane off the map (its radius may not even be finite) is given the map's inner edge
       // instead: the effects get a radius they can take, and the lane drops what they give.
@@ -534,6 +538,7 @@ void group_step(AzParticle* const* L, int n, double th, double h, int j0, const 
                k[st][2][l], k[st][3][l], k[st][4][l]);
   }
   for (int l = 0; l < n; ++l) {
+    L[l]->cell = cell[l];
     ok[l] = good[l] != 0 && noaz[l] == 0;
     if (!ok[l]) continue;
     AzState& yl = L[l]->y;
@@ -616,7 +621,9 @@ struct GroupRun {
     // it goes on from there next time, as alone it would.
     for (auto& p : lane) {
       while (p->running()) {
-        double s = p->node_stop(p->th);
+        // (A lane on the group's node stops where the group does: node_stop depends only on
+        // the grid, the settings and the start azimuth, which the lanes share.)
+        double s = p->th == th ? stop : p->node_stop(p->th);
         if (s > stop) break;
         const int which = p->next_event(s);
         if (which < 0 && grid_step && p->th == th) {

@@ -17,7 +17,7 @@ namespace turnfit {
 
 double ProbeLine::crossing_azimuth(double r_m) const {
   if (r_m < std::fabs(a_m)) return std::nan("");
-  return std::remainder(phi_rad - std::asin(a_m / r_m), 2 * kPi);
+  return remainder_two_pi(phi_rad - std::asin(a_m / r_m));
 }
 
 double TrackModel::sector_centre(double r_m, double& dc_dr) const {
