@@ -125,7 +125,8 @@ class PolarFieldMap {
   /// guess cell[l]; its field goes to bz[l], br[l], bt[l] (zeros off the map, where good[l] is
   /// cleared; good is never set). The numbers are sample_row_near's bit for bit: with `vector`
   /// and AVX-512 the lanes still in their cells go eight at a time (field/row_lanes.cpp), the
-  /// others one by one through sample_row_near.
+  /// others one by one through sample_row_near; without `vector`, every lane so (the same
+  /// function compiled in the same file, which tests compare the kernel with).
   void sample_rows_near(const FieldRowTable& t, int n, const double* r_m, int j, int s, int* cell, double* bz,
                         double* br, double* bt, unsigned char* good, bool vector = true) const;
 

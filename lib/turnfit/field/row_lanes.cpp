@@ -5,20 +5,21 @@
 // A lane's sample is sample_row_near's: while its radius stays in the cell of its last sample,
 // the row is that cell's and u is measured from the cell's edge (Estrin's scheme in u); else the
 // cell is found again and the row evaluated by Horner's scheme. The vector kernel does the first
-// case for eight lanes at once, with sample_row_near's expressions in its order (this file is
-// compiled without multiply-add contraction, lib/CMakeLists.txt, and intrinsics are never
-// contracted), and leaves every other lane to sample_row_near itself. Products and sums are
+// case for eight lanes at once, with sample_row_near's expressions in its order, and leaves
+// every other lane to sample_row_near itself. This file is compiled without multiply-add
+// contraction (lib/CMakeLists.txt): GCC's AVX-512 sums and products are plain vector operators,
+// which it would otherwise fuse, as it would the scalar ones under -march=native. Products and sums are
 // rounded alike in a vector lane and in a scalar register, so a lane's field does not depend on
 // the path: tests/unit/test_fast_track.cpp compares the two bit for bit.
 //
 // Why explicit vectors: GCC does not vectorize the lane loop (the gathered rows and the cell
 // test are "control flow in loop" to it, with the function compiled for AVX-512 as well). Each
-// lane's row is 8 contiguous doubles (FieldRowTable::Rows, one cache line); the kernel loads the
+// lane's row is 8 contiguous doubles (FieldRowTable::Rows, 64 bytes); the kernel loads the
 // eight lanes' rows as eight vectors and transposes them (24 shuffles), so that each of the 8
 // coefficients is one vector over the lanes.
 #include "turnfit/field/field_map.hpp"
 
-#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__)) && !defined(TURNFIT_NO_CLONES)
+#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
 #define TURNFIT_ROW_LANES_AVX512 1
 #include <immintrin.h>
 #endif
@@ -113,26 +114,31 @@ bool have_avx512() {
 
 void PolarFieldMap::sample_rows_near(const FieldRowTable& t, int n, const double* r_m, int j, int s, int* cell,
                                      double* bz, double* br, double* bt, unsigned char* good, bool vector) const {
-  unsigned done = 0;  // lanes sampled by the kernel (bit l)
 #ifdef TURNFIT_ROW_LANES_AVX512
-  if (vector && n > 1 && have_avx512()) {
-    const RowLaneConst k{&t.at(0, j, s), static_cast<long long>(t.ntheta) * t.nslot, r_min_, grid_.dr_m(), inv_dr_,
-                         inv_dth_};
-    for (int b = 0; b < n; b += 8) done |= rows8(k, r_m + b, cell + b, n - b, bz + b, br + b, bt + b) << b;
-  }
+  const bool kernel = vector && n > 1 && have_avx512();
+  const RowLaneConst k{&t.at(0, j, s), static_cast<long long>(t.ntheta) * t.nslot, r_min_, grid_.dr_m(), inv_dr_,
+                       inv_dth_};
 #else
   (void)vector;
 #endif
-  for (int l = 0; l < n; ++l) {
-    if ((done >> l) & 1) continue;
-    FieldSample f;
-    if (!sample_row_near(t, r_m[l], j, s, cell[l], f)) {
-      good[l] = 0;
-      f = FieldSample{};
+  // Blocks of eight lanes: the kernel's (bit l - b of done), then the block's others one by one.
+  for (int b = 0; b < n; b += 8) {
+    const int e = n - b < 8 ? n : b + 8;
+    unsigned done = 0;
+#ifdef TURNFIT_ROW_LANES_AVX512
+    if (kernel) done = rows8(k, r_m + b, cell + b, e - b, bz + b, br + b, bt + b);
+#endif
+    for (int l = b; l < e; ++l) {
+      if ((done >> (l - b)) & 1) continue;
+      FieldSample f;
+      if (!sample_row_near(t, r_m[l], j, s, cell[l], f)) {
+        good[l] = 0;
+        f = FieldSample{};
+      }
+      bz[l] = f.bz_T;
+      br[l] = f.dbz_dr_T_m;
+      bt[l] = f.dbz_dth_T;
     }
-    bz[l] = f.bz_T;
-    br[l] = f.dbz_dr_T_m;
-    bt[l] = f.dbz_dth_T;
   }
 }
 
