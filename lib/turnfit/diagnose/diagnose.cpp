@@ -62,6 +62,20 @@ namespace {
 thread_local std::vector<std::string>* tl_log = nullptr;
 thread_local unsigned tl_threads = 0;
 
+/// A worker's log and thread share while one fit of several runs on it, reset however the fit ends.
+struct WorkerScope {
+  WorkerScope(std::vector<std::string>* lines, unsigned n) {
+    tl_log = lines;
+    tl_threads = n;
+  }
+  ~WorkerScope() {
+    tl_log = nullptr;
+    tl_threads = 0;
+  }
+  WorkerScope(const WorkerScope&) = delete;
+  WorkerScope& operator=(const WorkerScope&) = delete;
+};
+
 /// The current model: a problem (the machine with the effects selected so far, each with
 /// design variables on its parameters) and its design.
 struct State {
@@ -285,6 +299,24 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
   };
   // The threads a fit or a bunch centre may use here: all, or one inside a refit run beside another.
   auto nthreads = [&] { return tl_threads ? tl_threads : threads; };
+  // fn(j) for every j < n, independent fits side by side (each on its share of the threads;
+  // a fit's numbers do not depend on it), their log lines written in j's order afterwards (as
+  // they run when one worker does them all), or handed to the caller in `kept` (one list per j).
+  auto side_by_side = [&](size_t n, const std::function<void(size_t)>& fn,
+                          std::vector<std::vector<std::string>>* kept = nullptr) {
+    std::vector<std::vector<std::string>> lines(n);
+    const unsigned workers = static_cast<unsigned>(std::max<size_t>(1, std::min<size_t>(threads, n)));
+    parallel_for(n, workers, [&](size_t j, unsigned) {
+      const WorkerScope scope(workers > 1 || kept ? &lines[j] : nullptr, std::max(1u, threads / workers));
+      fn(j);
+    });
+    if (kept) {
+      *kept = std::move(lines);
+      return;
+    }
+    for (const auto& ls : lines)
+      for (const auto& line : ls) log(line);
+  };
   auto on_threads = [&](LocalSearchSettings x) {
     x.threads = nthreads();
     return x;
@@ -1580,7 +1612,7 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
     auto whole_fits_best_first = [&](std::vector<Refit*> todo, int limit) {
       std::stable_sort(todo.begin(), todo.end(), [](const Refit* a, const Refit* b) { return a->c2 < b->c2; });
       if (todo.size() > static_cast<size_t>(limit)) todo.resize(static_cast<size_t>(limit));
-      for (Refit* rf : todo) whole_fit(*rf);
+      side_by_side(todo.size(), [&](size_t j) { whole_fit(*todo[j]); });
     };
     // A refit's outcome, kept until the refits run beside it are done: the refit or why it
     // failed, and its log lines (a refit writes its lines here while it runs).
@@ -1726,16 +1758,7 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
       // (One worker, with one thread or one pick, runs on this thread with every thread.)
       const unsigned workers = static_cast<unsigned>(std::max<size_t>(1, std::min<size_t>(threads, picks.size())));
       parallel_for(picks.size(), workers, [&](size_t pi, unsigned) {
-        struct Scope {  // this worker's log and thread share, reset however the refit ends
-          Scope(std::vector<std::string>* lines, unsigned n) {
-            tl_log = lines;
-            tl_threads = n;
-          }
-          ~Scope() {
-            tl_log = nullptr;
-            tl_threads = 0;
-          }
-        } scope(&slots[pi].lines, std::max(1u, threads / workers));
+        const WorkerScope scope(&slots[pi].lines, std::max(1u, threads / workers));
         refit_one(picks[pi], pi < primary, slots[pi]);
       });
       for (auto& sl : slots) merge(sl);
@@ -1816,7 +1839,8 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
           todo.push_back(&rf);
       std::stable_sort(todo.begin(), todo.end(), [](const Refit* a, const Refit* b) { return a->c2 < b->c2; });
       if (todo.size() > static_cast<size_t>(s.polish_refits)) todo.resize(static_cast<size_t>(s.polish_refits));
-      for (Refit* rf : todo) {
+      side_by_side(todo.size(), [&](size_t j) {
+        Refit* rf = todo[j];
         const auto t0 = std::chrono::steady_clock::now();
         const double was = rf->c2;
         polish(rf->state, rf->r);
@@ -1824,7 +1848,7 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
         rf->wall_s += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
         log("  refit " + rf->row->c->label + " taken on to convergence: chi2 " + cli::fmt(was, 6) + " -> " +
             cli::fmt(rf->c2, 6));
-      }
+      });
     }
     for (size_t i = 0, fi = 0; i <= refits.size(); ++i) {
       while (fi < failed.size() && failed[fi].first == i) round_rep["refits"].push_back(failed[fi++].second);
@@ -1995,10 +2019,23 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
     double drop_loss = std::numeric_limits<double>::infinity();
     State drop_state;
     LocalSearchResult drop_fit;
-    for (size_t k = 0; k < selected.size(); ++k) {
+    // The reduced models' fits are independent of one another: side by side, their outcomes
+    // taken in the selection's order.
+    struct Reduced {
+      State red;
+      LocalSearchResult r;
+      std::optional<std::string> error;
+    };
+    std::vector<size_t> takeable;  // a trim-coil group (discrete) is not taken out
+    for (size_t k = 0; k < selected.size(); ++k)
+      if (!selected[k].cand->discrete) takeable.push_back(k);
+    std::vector<Reduced> reduced(selected.size());
+    std::vector<std::vector<std::string>> fit_lines;  // per takeable effect: its fit's own lines
+    side_by_side(takeable.size(), [&](size_t j) {
+      const size_t k = takeable[j];
+      Reduced& out_k = reduced[k];
       const Selected& sk = selected[k];
       const Candidate& c = *sk.cand;
-      if (c.discrete) continue;
       Machine v = st.prob->machine();
       for (const auto& prm : c.params)
         for (size_t e : prm.entries) v.doc["effects"][sk.first_entry + e][prm.key] = prm.absent;
@@ -2013,14 +2050,22 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
         nv.push_back(st.prob->variables()[q]);
         x.push_back(st.x[q]);
       }
-      State red;
-      LocalSearchResult r;
       try {
-        refit_model(v, nv, x, st.n_problem, false, red, r);
+        refit_model(v, nv, x, st.n_problem, false, out_k.red, out_k.r);
       } catch (const Error& err) {
-        log("  without " + c.label + ": the refit failed: " + std::string(err.what()));
+        out_k.error = err.what();
+      }
+    }, &fit_lines);
+    for (size_t j = 0; j < takeable.size(); ++j) {
+      const size_t k = takeable[j];
+      const Candidate& c = *selected[k].cand;
+      for (const auto& line : fit_lines[j]) log(line);
+      if (reduced[k].error) {
+        log("  without " + c.label + ": the refit failed: " + *reduced[k].error);
         continue;
       }
+      State& red = reduced[k].red;
+      LocalSearchResult& r = reduced[k].r;
       const double loss = (chi2_of(red, nullptr, nullptr) - c2_full) / chat;
       log("  without " + c.label + ": chi2 up by " + cli::fmt(loss, 5) + (chat > 1 ? " on that scale" : "") +
           " (it must earn " + cli::fmt(threshold(k_of(c)), 4) + ")");
