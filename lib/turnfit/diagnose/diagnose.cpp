@@ -1614,16 +1614,15 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
       if (todo.size() > static_cast<size_t>(limit)) todo.resize(static_cast<size_t>(limit));
       side_by_side(todo.size(), [&](size_t j) { whole_fit(*todo[j]); });
     };
-    // A refit's outcome, kept until the refits run beside it are done: the refit or why it
-    // failed, and its log lines (a refit writes its lines here while it runs).
+    // A refit's outcome, kept until the refits run beside it are done: the refit or why it failed.
     struct RefitSlot {
       std::optional<Refit> rf;
       std::optional<json> fail;
-      std::vector<std::string> lines;
     };
-    // In pick order, whatever order they ran in: the report and the log as one at a time gives them.
-    auto merge = [&](RefitSlot& sl) {
-      for (const auto& line : sl.lines) log(line);
+    // In pick order, whatever order they ran in: the report and the log (the refit's own lines,
+    // kept while it ran) as one at a time gives them.
+    auto merge = [&](RefitSlot& sl, const std::vector<std::string>& lines) {
+      for (const auto& line : lines) log(line);
       if (sl.fail)
         failed.push_back({refits.size(), *sl.fail});
       else if (sl.rf)
@@ -1755,13 +1754,9 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
     // kept 1.6 of 2 cores busy with one refit at a time.
     {
       std::vector<RefitSlot> slots(picks.size());
-      // (One worker, with one thread or one pick, runs on this thread with every thread.)
-      const unsigned workers = static_cast<unsigned>(std::max<size_t>(1, std::min<size_t>(threads, picks.size())));
-      parallel_for(picks.size(), workers, [&](size_t pi, unsigned) {
-        const WorkerScope scope(&slots[pi].lines, std::max(1u, threads / workers));
-        refit_one(picks[pi], pi < primary, slots[pi]);
-      });
-      for (auto& sl : slots) merge(sl);
+      std::vector<std::vector<std::string>> lines;
+      side_by_side(picks.size(), [&](size_t pi) { refit_one(picks[pi], pi < primary, slots[pi]); }, &lines);
+      for (size_t pi = 0; pi < slots.size(); ++pi) merge(slots[pi], lines[pi]);
     }
     auto best_gain = [&] {
       double g = -std::numeric_limits<double>::infinity();
@@ -1785,7 +1780,7 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
         picks.push_back(r);
         RefitSlot sl;
         refit_one(r, true, sl);
-        merge(sl);
+        merge(sl, {});
         ++extra;
       }
     }
@@ -2029,11 +2024,11 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
     std::vector<size_t> takeable;  // a trim-coil group (discrete) is not taken out
     for (size_t k = 0; k < selected.size(); ++k)
       if (!selected[k].cand->discrete) takeable.push_back(k);
-    std::vector<Reduced> reduced(selected.size());
+    std::vector<Reduced> reduced(takeable.size());
     std::vector<std::vector<std::string>> fit_lines;  // per takeable effect: its fit's own lines
     side_by_side(takeable.size(), [&](size_t j) {
       const size_t k = takeable[j];
-      Reduced& out_k = reduced[k];
+      Reduced& out_k = reduced[j];
       const Selected& sk = selected[k];
       const Candidate& c = *sk.cand;
       Machine v = st.prob->machine();
@@ -2060,12 +2055,12 @@ Diagnosis diagnose(TurnPatternProblem& p, const std::vector<double>& x0, const D
       const size_t k = takeable[j];
       const Candidate& c = *selected[k].cand;
       for (const auto& line : fit_lines[j]) log(line);
-      if (reduced[k].error) {
-        log("  without " + c.label + ": the refit failed: " + *reduced[k].error);
+      if (reduced[j].error) {
+        log("  without " + c.label + ": the refit failed: " + *reduced[j].error);
         continue;
       }
-      State& red = reduced[k].red;
-      LocalSearchResult& r = reduced[k].r;
+      State& red = reduced[j].red;
+      LocalSearchResult& r = reduced[j].r;
       const double loss = (chi2_of(red, nullptr, nullptr) - c2_full) / chat;
       log("  without " + c.label + ": chi2 up by " + cli::fmt(loss, 5) + (chat > 1 ? " on that scale" : "") +
           " (it must earn " + cli::fmt(threshold(k_of(c)), 4) + ")");
