@@ -429,6 +429,7 @@ TEST_CASE("diagnose: look-alike sectors are refitted beside the strongest, so th
     s.types = {"sector-strength"};
     s.refits = 1;
     s.siblings = siblings;
+    s.neighbour_refits = 0;  // siblings alone (ring neighbours are their own rule)
     s.extra_refits = 0;
     s.max_effects = 1;
     s.whole_fits = whole_fits;

@@ -186,6 +186,12 @@ struct DiagnoseSettings {
   /// fitted whole as well, so that look-alikes are compared at their valley floors (0: never).
   int challengers = 4;
   double challenge_fraction = 0.1;
+  /// Every round: the unrefitted ring neighbours (sector k - 1 and k + 1) of each sector whose
+  /// refit comes within `neighbour_fraction` of the round's best chi2 gain are refitted too, at
+  /// most `neighbour_refits` (0: never): two sectors either side of the truth fit nearly as
+  /// well as it does, and the screen may not have ranked the truth high enough to be refitted.
+  int neighbour_refits = 2;
+  double neighbour_fraction = 0.1;
   int folds = 5;                    ///< interleaved held-out folds
   /// Round 1: the linear detection limit of each continuous candidate that does not pass,
   /// checked nonlinearly at up to this many sizes (0: linear limits only): the base model with

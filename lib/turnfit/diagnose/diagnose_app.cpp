@@ -78,6 +78,12 @@ void add_diagnose_options(CLI::App& app, DiagnoseOptions& o) {
       ->check(CLI::Range(0, 50));
   app.add_option("--challenge-fraction", o.settings.challenge_fraction, "See --challengers (default 0.1)")
       ->check(CLI::Range(0.0, 1.0));
+  app.add_option("--neighbours", o.settings.neighbour_refits,
+                 "Refit up to this many unrefitted ring neighbours (sectors k - 1 and k + 1) of the sectors whose "
+                 "refit comes within --neighbour-fraction of the round's best gain (default 2; 0: never)")
+      ->check(CLI::Range(0, 50));
+  app.add_option("--neighbour-fraction", o.settings.neighbour_fraction, "See --neighbours (default 0.1)")
+      ->check(CLI::Range(0.0, 1.0));
   app.add_option("--polish-passes", o.settings.polish_passes,
                  "Take a fit that ran out of iterations on from where it stopped, at most this many times: the "
                  "state before each screen, the null refits, the elimination fits, and the refits within 30 in chi2 of a round's "
